@@ -1,0 +1,49 @@
+# fingerps: set-up, build, demo, tests, benchmarks. Every target sets up what it needs.
+#   make demo   - the whole graph on the simulated rig, with a summary
+#   make test   - the whole test suite
+#   make bench  - every benchmark; figures into bench/results.json
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+PYTHON ?= python3
+STAMPS := .stamps
+ROS := source tools/ros_env.sh &&
+SRC_FILES := $(shell find src -type f \( -name '*.py' -o -name '*.xml' -o -name '*.txt' \
+               -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.cfg' \
+               -o -name '*.yaml' \) -not -path '*/__pycache__/*')
+
+.PHONY: setup build demo test bench lint clean
+.DEFAULT_GOAL := demo
+
+setup: $(STAMPS)/venv
+build: $(STAMPS)/build
+
+$(STAMPS)/venv: requirements.txt constraints.txt tools/mend_ros_wheel_cmake.py
+	@mkdir -p $(STAMPS)
+	@test -x .venv/bin/python || $(PYTHON) -m venv .venv
+	.venv/bin/python -m pip install --quiet --disable-pip-version-check \
+	    -r requirements.txt -c constraints.txt
+	.venv/bin/python tools/mend_ros_wheel_cmake.py
+	@touch $@
+
+# --symlink-install: Python sources are used in place, so editing a node needs no rebuild.
+$(STAMPS)/build: $(STAMPS)/venv $(SRC_FILES)
+	$(ROS) colcon --log-base log build --symlink-install \
+	    --event-handlers console_cohesion- status- summary+ \
+	    --cmake-args -DBUILD_TESTING=OFF
+	@touch $@
+
+demo: build
+	$(ROS) ros2_run() { "install/$$1/lib/$$1/$$2" "$${@:3}"; }; \
+	    ros2_run fingerps_driver demo --out out/demo
+
+test: build
+	$(ROS) python -m pytest -q tests
+
+bench: build
+	$(ROS) python bench/run_all.py --out bench/results.json
+
+lint: $(STAMPS)/venv
+	.venv/bin/ruff check src tests bench tools
+
+clean:
+	rm -rf build install log $(STAMPS)

@@ -1,0 +1,1 @@
+"""fingerps_calib."""

@@ -1,0 +1,727 @@
+"""Light directions from images of a shiny sphere of known radius (paper Sec. 3.1, Eq. 8-10).
+
+Geometry in the camera optical frame (x right, y down, z forward, metres), camera centre
+at the origin; the ray through pixel (u, v) is K^-1 (u, v, 1), i.e. (u - cx, v - cy, f)
+when fx = fy = f. Pixel coordinates (u, v) are ideal (undistorted) ones unless a function
+takes ``distortion``. See ../shared/paper/NOTES.md Sec. 3.1.
+
+Steps (`calibrate_lights`):
+
+1. `sphere_edge_points`: sub-pixel silhouette points of the sphere.
+2. `fit_sphere_center`: the sphere centre S from the tangent rays (Eq. 8, 9).
+3. `highlight_centroid`: the specular highlight of each LED.
+4. `light_direction`: the mirror reflection at the highlight (Eq. 10).
+
+`calibrate_lights_orthographic` is the classic chrome-sphere method for public data sets
+without intrinsics (orthographic camera, directions in the PS frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage, optimize
+
+from fingerps_calib.errors import FingerpsCalibError
+
+#: Relative thresholds at which the highlight centroid is recomputed to measure its
+#: stability (`LightCalibrationResult.residuals_px`); the middle one gives the centroid.
+_STABILITY_THRESHOLDS = (0.3, 0.5, 0.7)
+
+
+@dataclass(frozen=True, eq=False)
+class SphereFit:
+    """The sphere fitted to its silhouette (paper Eq. 9).
+
+    Attributes
+    ----------
+    center_optical_m : (3,) float64
+        Sphere centre S in the optical frame, metres.
+    radius_m : float
+        The known radius r the fit used, metres.
+    residuals_px : (N,) float64
+        Signed distance of each edge point to the fitted sphere's silhouette, pixels:
+        the Sampson (first-order geometric) distance to the silhouette conic
+        x^T K^-T (S S^T - (|S|^2 - r^2) I) K^-1 x = 0; positive inside the silhouette.
+    rms_residual_px : float
+        Root mean square of ``residuals_px``.
+    silhouette_center_uv : (2,) float64
+        Centre of the circle fitted to the edge points (the initial guess), pixels.
+    silhouette_radius_px : float
+        Radius of that circle, pixels.
+    converged : bool
+        The least-squares solver reported convergence.
+    """
+
+    center_optical_m: np.ndarray
+    radius_m: float
+    residuals_px: np.ndarray
+    rms_residual_px: float
+    silhouette_center_uv: np.ndarray
+    silhouette_radius_px: float
+    converged: bool
+
+
+@dataclass(frozen=True, eq=False)
+class LightCalibrationResult:
+    """Light directions from a shiny sphere (`calibrate_lights`).
+
+    Attributes
+    ----------
+    directions_optical : (K, 3) float64
+        Unit vector from the sphere's highlight point towards LED k, optical frame;
+        NaN for an LED whose highlight was not found.
+    highlights_uv : (K, 2) float64
+        Highlight centroids, ideal pixel coordinates; NaN where not found.
+    residuals_px : (K,) float64
+        Stability of each highlight centroid: the largest distance between the centroid at
+        relative threshold 0.5 and the centroids at 0.3 and 0.7 of the blob's range above
+        the disc's median (pixels). A clean, symmetric highlight gives a few hundredths of a
+        pixel; a highlight merged with a second reflection or cut by the limb gives more.
+        (The distance to the "reprojected" highlight would be zero by construction.)
+    sphere_center_optical_m : (3,) float64
+        Fitted sphere centre, metres; NaN if the sphere was not found.
+    edge_rms_px : float
+        RMS distance of the edge points to the fitted silhouette (`SphereFit`), pixels.
+    ok : bool
+        Every check passed; if False, ``problems`` says why and what to do.
+    problems : tuple of str
+    """
+
+    directions_optical: np.ndarray
+    highlights_uv: np.ndarray
+    residuals_px: np.ndarray
+    sphere_center_optical_m: np.ndarray
+    edge_rms_px: float
+    ok: bool
+    problems: tuple[str, ...]
+
+    @property
+    def directions_ps(self) -> np.ndarray:
+        """(K, 3) float64: ``directions_optical`` in the PS frame (diag(1, -1, -1))."""
+        return self.directions_optical * np.array([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True, eq=False)
+class OrthographicLightResult:
+    """Light directions from a chrome sphere under an orthographic camera.
+
+    Attributes
+    ----------
+    directions_ps : (K, 3) float64
+        Unit light directions in the PS frame (view direction (0, 0, 1)); NaN where the
+        highlight was not found.
+    highlights_uv : (K, 2) float64
+    circle_center_uv : (2,) float64
+    circle_radius_px : float
+    ok : bool
+    problems : tuple of str
+    """
+
+    directions_ps: np.ndarray
+    highlights_uv: np.ndarray
+    circle_center_uv: np.ndarray
+    circle_radius_px: float
+    ok: bool
+    problems: tuple[str, ...]
+
+
+# --------------------------------------------------------------------------- edge points
+
+
+def sphere_edge_points(
+    images: np.ndarray,
+    *,
+    mask: np.ndarray | None = None,
+    smoothing_sigma_px: float = 1.0,
+    search_half_width_px: float = 5.0,
+) -> np.ndarray:
+    """Sub-pixel points of the sphere's silhouette.
+
+    Without a mask, the sphere is segmented in the pixel-wise maximum over the images (its
+    weak diffuse component against a dark background): Otsu threshold, largest connected
+    component, holes filled. An ellipse fitted to that outline gives one search line per
+    pixel of perimeter, through the ellipse's centre; along each line the image (smoothed
+    by a Gaussian of ``smoothing_sigma_px``) is sampled every 0.25 px with cubic
+    interpolation and the edge is put at the peak of the outward intensity drop, refined
+    by a parabola through the three samples around it. With ``mask`` the same refinement
+    runs on the mask's boundary (the 0/1 mask, smoothed), so the points lie half-way
+    between inside and outside pixels.
+
+    Search lines that leave the image, or whose edge is weak (below a quarter of the
+    median edge strength), give no point.
+
+    Parameters
+    ----------
+    images : (K, H, W) or (H, W) array, any real dtype
+        Images of the sphere (one per LED).
+    mask : (H, W) bool array, optional
+        The sphere's pixels; if given, its boundary is used instead of segmenting.
+    smoothing_sigma_px : float
+        Gaussian smoothing before the gradient, pixels.
+    search_half_width_px : float
+        Half length of each search line around the ellipse, pixels.
+
+    Returns
+    -------
+    (N, 2) float64
+        Edge points (u, v), pixels; empty (0, 2) if no sphere was found.
+
+    Raises
+    ------
+    FingerpsCalibError
+        Bad shapes.
+    """
+    stack = _as_stack(images, "images")
+    h, w = stack.shape[1:]
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != (h, w):
+            raise FingerpsCalibError(
+                f"mask has shape {mask.shape}, the images are {h}x{w}; pass a mask of the "
+                "images' size"
+            )
+        region = _largest_component(mask.astype(bool))
+        field = mask.astype(bool).astype(np.float64)
+    else:
+        field = stack.max(axis=0)
+        region = _segment_bright(field)
+    if region is None:
+        return np.zeros((0, 2))
+    contours, _ = cv2.findContours(
+        region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
+    )
+    outline = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+    if len(outline) < 5:
+        return np.zeros((0, 2))
+    (ecx, ecy), (ea, eb), angle_deg = cv2.fitEllipse(outline.astype(np.float32))
+    n_lines = max(32, int(np.pi * (ea + eb) / 2))  # about one per pixel of perimeter
+    phi = np.linspace(0.0, 2 * np.pi, n_lines, endpoint=False)
+    direction = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    radius = _ellipse_radius(phi, ea / 2, eb / 2, np.deg2rad(angle_deg))
+
+    smooth = ndimage.gaussian_filter(field, smoothing_sigma_px, mode="nearest")
+    step = 0.25
+    s = np.arange(-search_half_width_px, search_half_width_px + step / 2, step)
+    dist = radius[:, None] + s[None, :]  # (L, S) distance from the centre along each line
+    u = ecx + direction[:, :1] * dist
+    v = ecy + direction[:, 1:] * dist
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    profile = ndimage.map_coordinates(smooth, [v.ravel(), u.ravel()], order=3,
+                                      mode="nearest").reshape(u.shape)
+    drop = -np.gradient(profile, step, axis=1)  # outward intensity drop, per pixel
+    peak = np.argmax(drop, axis=1)
+    rows = np.arange(n_lines)
+    valid = inside.all(axis=1) & (peak > 0) & (peak < len(s) - 1)
+    strength = drop[rows, peak]
+    if not np.any(valid):
+        return np.zeros((0, 2))
+    valid &= strength > 0.25 * np.median(strength[valid])
+    p = np.clip(peak, 1, len(s) - 2)
+    y0, y1, y2 = drop[rows, p - 1], drop[rows, p], drop[rows, p + 1]
+    denom = y0 - 2 * y1 + y2
+    offset = np.where(denom < 0, 0.5 * (y0 - y2) / np.where(denom < 0, denom, -1.0), 0.0)
+    edge = radius + s[p] + np.clip(offset, -0.5, 0.5) * step
+    points = np.stack([ecx + direction[:, 0] * edge, ecy + direction[:, 1] * edge], axis=1)
+    return points[valid]
+
+
+# ---------------------------------------------------------------------------- sphere fit
+
+
+def fit_sphere_center(
+    edge_uv: np.ndarray, *, camera_matrix: np.ndarray, radius_m: float
+) -> SphereFit:
+    """Fit the sphere centre S to its silhouette points (paper Eq. 8, 9).
+
+    The rays through the edge points are tangent to the sphere: the distance from S to each
+    ray equals r. Minimises sum_i rho(dist_i(S) - r) with `scipy.optimize.least_squares`
+    (soft-L1 loss, scale about half a pixel), the geometric form of Eq. 9: the paper's
+    h_i - r^2 = dist_i^2 - r^2 ~ 2 r (dist_i - r) has the same minimiser for exact data.
+    Initial guess: a circle fitted to the edge points gives the centre direction and the
+    apparent angular radius alpha, hence |S| = r / sin(alpha).
+
+    Parameters
+    ----------
+    edge_uv : (N, 2) float
+        Silhouette points (u, v), ideal pixel coordinates, N >= 5.
+    camera_matrix : (3, 3) float
+        K.
+    radius_m : float
+        Sphere radius r, metres.
+
+    Returns
+    -------
+    SphereFit
+        ``residuals_px`` are Sampson distances to the fitted silhouette (see `SphereFit`).
+
+    Raises
+    ------
+    FingerpsCalibError
+        Bad shapes, too few points, or a non-positive radius.
+    """
+    edge_uv = np.asarray(edge_uv, dtype=np.float64)
+    k = _camera_matrix(camera_matrix)
+    if edge_uv.ndim != 2 or edge_uv.shape[1] != 2 or len(edge_uv) < 5:
+        raise FingerpsCalibError(
+            f"edge_uv has shape {edge_uv.shape}, expected (N, 2) with N >= 5; is the sphere "
+            "visible in the images?"
+        )
+    if not radius_m > 0:
+        raise FingerpsCalibError(f"radius_m = {radius_m} must be positive (metres)")
+    rays = _rays(edge_uv, k)
+    (uc, vc), rho = _fit_circle(edge_uv)
+    f = float(np.sqrt(k[0, 0] * k[1, 1]))
+    alpha = np.arctan(rho / f)
+    s0 = _rays(np.array([[uc, vc]]), k)[0] * radius_m / np.sin(alpha)
+    tangent_distance = np.sqrt(max(s0 @ s0 - radius_m**2, 1e-12))
+
+    def residual(s: np.ndarray) -> np.ndarray:
+        along = rays @ s
+        return np.sqrt(np.maximum(s @ s - along**2, 0.0)) - radius_m
+
+    solution = optimize.least_squares(
+        residual, s0, loss="soft_l1", f_scale=0.5 * tangent_distance / f,
+        x_scale=np.full(3, radius_m), method="trf",
+    )
+    center = solution.x
+    residuals_px = _silhouette_sampson(edge_uv, k, center, radius_m)
+    return SphereFit(
+        center_optical_m=center,
+        radius_m=float(radius_m),
+        residuals_px=residuals_px,
+        rms_residual_px=float(np.sqrt(np.mean(residuals_px**2))),
+        silhouette_center_uv=np.array([uc, vc]),
+        silhouette_radius_px=float(rho),
+        converged=bool(solution.success),
+    )
+
+
+# ----------------------------------------------------------------------------- highlight
+
+
+def highlight_centroid(
+    image: np.ndarray,
+    *,
+    disc_center_uv: np.ndarray,
+    disc_radius_px: float,
+    relative_threshold: float = 0.5,
+) -> tuple[float, float]:
+    """Centroid of the specular highlight of one LED inside the sphere's disc.
+
+    Pixels inside the disc brighter than ``background + relative_threshold * (peak -
+    background)`` (background: the disc's median, peak: its maximum) form blobs; the blob
+    with the largest summed excess wins (a weaker second reflection is dropped), and its
+    centroid weighted by the excess is returned. A saturated highlight is a flat plateau
+    whose weighted centroid is its centre, so saturation does no harm.
+
+    Parameters
+    ----------
+    image : (H, W) array, any real dtype
+    disc_center_uv : (2,) float
+        Centre of the sphere's image, pixels.
+    disc_radius_px : float
+        Radius of the search disc, pixels (the sphere's, less a small margin).
+    relative_threshold : float
+        In (0, 1).
+
+    Returns
+    -------
+    (u, v) : tuple of float
+        Pixel coordinates of the highlight.
+
+    Raises
+    ------
+    FingerpsCalibError
+        Bad shapes, or no highlight in the disc.
+    """
+    u, v, _ = _highlight(image, disc_center_uv, disc_radius_px, (relative_threshold,))
+    return u, v
+
+
+def _highlight(
+    image: np.ndarray,
+    disc_center_uv: np.ndarray,
+    disc_radius_px: float,
+    thresholds: tuple[float, ...],
+) -> tuple[float, float, float]:
+    """Highlight centroid at the middle threshold and its stability (see module doc)."""
+    image = np.asarray(image)
+    if image.ndim != 2 or not np.issubdtype(image.dtype, np.number):
+        raise FingerpsCalibError(f"image has shape {image.shape}, expected (H, W) numbers")
+    for t in thresholds:
+        if not 0.0 < t < 1.0:
+            raise FingerpsCalibError(f"relative_threshold {t} must lie in (0, 1)")
+    cu, cv = (float(x) for x in np.asarray(disc_center_uv, dtype=np.float64).ravel()[:2])
+    h, w = image.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    disc = (uu - cu) ** 2 + (vv - cv) ** 2 <= disc_radius_px**2
+    if not np.any(disc):
+        raise FingerpsCalibError(
+            f"the disc at ({cu:.1f}, {cv:.1f}) radius {disc_radius_px:.1f} px holds no "
+            "pixel of the image; check the sphere fit"
+        )
+    values = image.astype(np.float64)
+    background = float(np.median(values[disc]))
+    peak = float(values[disc].max())
+    if not peak > background:
+        raise FingerpsCalibError(
+            "no highlight inside the sphere's disc (it is uniform); check that the LED lit "
+            "and that its reflection is visible on the sphere"
+        )
+    main = thresholds[len(thresholds) // 2]
+    cut = background + main * (peak - background)
+    excess = np.where(disc, values - cut, 0.0)
+    n, labels = cv2.connectedComponents((excess > 0).astype(np.uint8), connectivity=8)
+    weight = ndimage.sum_labels(excess, labels, index=np.arange(1, n))
+    best = 1 + int(np.argmax(weight))
+    blob = labels == best
+    centroid = _weighted_centroid(np.where(blob, excess, 0.0))
+    # Stability: the centroid at other thresholds, within the component holding this blob.
+    spread = 0.0
+    seed = tuple(np.argwhere(blob)[0])
+    for t in thresholds:
+        if t == main:
+            continue
+        ex = np.where(disc, values - (background + t * (peak - background)), 0.0)
+        lab, _ = ndimage.label(ex > 0, structure=np.ones((3, 3)))
+        if lab[seed] == 0:
+            continue
+        other = _weighted_centroid(np.where(lab == lab[seed], ex, 0.0))
+        spread = max(spread, float(np.hypot(*(other - centroid))))
+    return float(centroid[0]), float(centroid[1]), spread
+
+
+# ---------------------------------------------------------------------- light direction
+
+
+def light_direction(
+    highlight_uv: np.ndarray,
+    *,
+    sphere_center: np.ndarray,
+    radius_m: float,
+    camera_matrix: np.ndarray,
+) -> np.ndarray:
+    """Direction towards the LED whose highlight is at ``highlight_uv`` (paper Eq. 10).
+
+    The ray d through the highlight meets the sphere (nearest root) at S1; N = (S1 - S)/r,
+    R = -d (unit, from S1 towards the camera centre), l = 2 (N.R) N - R.
+
+    Parameters
+    ----------
+    highlight_uv : (2,) float
+        Ideal pixel coordinates.
+    sphere_center : (3,) float
+        S, optical frame, metres.
+    radius_m : float
+    camera_matrix : (3, 3) float
+
+    Returns
+    -------
+    (3,) float64
+        Unit vector from S1 towards the LED, optical frame.
+
+    Raises
+    ------
+    FingerpsCalibError
+        The ray misses the sphere, or bad shapes.
+    """
+    k = _camera_matrix(camera_matrix)
+    uv = np.asarray(highlight_uv, dtype=np.float64)
+    s = np.asarray(sphere_center, dtype=np.float64)
+    if uv.shape != (2,) or s.shape != (3,):
+        raise FingerpsCalibError(
+            f"highlight_uv {uv.shape} / sphere_center {s.shape}: expected (2,) and (3,)"
+        )
+    d = _rays(uv[None, :], k)[0]
+    along = d @ s
+    disc = along**2 - s @ s + radius_m**2
+    if disc < 0 or along <= 0:
+        raise FingerpsCalibError(
+            f"the ray through the highlight ({uv[0]:.1f}, {uv[1]:.1f}) misses the sphere; "
+            "the highlight lies outside the sphere's image or the sphere fit is wrong"
+        )
+    s1 = (along - np.sqrt(disc)) * d
+    normal = (s1 - s) / radius_m
+    r = -d
+    light = 2.0 * (normal @ r) * normal - r
+    return light / np.linalg.norm(light)
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def calibrate_lights(
+    images: np.ndarray,
+    *,
+    camera_matrix: np.ndarray,
+    radius_m: float,
+    mask: np.ndarray | None = None,
+    distortion: np.ndarray | None = None,
+    edge_rms_limit_px: float = 0.5,
+    residual_limit_px: float = 1.0,
+) -> LightCalibrationResult:
+    """Light directions of K LEDs from K images of a shiny sphere (paper Sec. 3.1).
+
+    Checks, each failing one adds a reason to ``problems`` and makes ``ok`` False: the
+    sphere is found and its fit converged in front of the camera; the silhouette fits within
+    ``edge_rms_limit_px`` and is seen along most of its outline; every highlight is found
+    inside the disc, its stability (``residuals_px``) is within ``residual_limit_px``, and
+    its direction points to the camera side (z_optical < 0).
+
+    Parameters
+    ----------
+    images : (K, H, W) array, any real dtype
+        Image k taken under LED k alone.
+    camera_matrix : (3, 3) float
+        K of the camera.
+    radius_m : float
+        Radius of the sphere, metres.
+    mask : (H, W) bool, optional
+        The sphere's pixels (then its boundary gives the silhouette).
+    distortion : (n,) float, optional
+        OpenCV distortion coefficients; if given, edge points and highlights are undistorted
+        before the geometry. Without it the images must be undistorted already.
+    edge_rms_limit_px, residual_limit_px : float
+        Limits of the checks above, pixels.
+
+    Returns
+    -------
+    LightCalibrationResult
+
+    Raises
+    ------
+    FingerpsCalibError
+        Bad input shapes or radius.
+    """
+    stack = np.asarray(images)
+    if stack.ndim != 3 or stack.shape[0] < 1 or not np.issubdtype(stack.dtype, np.number):
+        raise FingerpsCalibError(
+            f"images has shape {stack.shape} ({stack.dtype}), expected (K, H, W) numbers, "
+            "one image per LED"
+        )
+    k = _camera_matrix(camera_matrix)
+    if not radius_m > 0:
+        raise FingerpsCalibError(f"radius_m = {radius_m} must be positive (metres)")
+    n_led = stack.shape[0]
+    directions = np.full((n_led, 3), np.nan)
+    highlights = np.full((n_led, 2), np.nan)
+    residuals = np.full(n_led, np.nan)
+    problems: list[str] = []
+
+    def result(center: np.ndarray, edge_rms: float) -> LightCalibrationResult:
+        return LightCalibrationResult(
+            directions, highlights, residuals, center, edge_rms, not problems, tuple(problems)
+        )
+
+    raw_edges = sphere_edge_points(stack, mask=mask)
+    if len(raw_edges) < 20:
+        problems.append(
+            "sphere not found: fewer than 20 edge points; put the whole sphere in view "
+            "against a dark background (or pass a mask)"
+        )
+        return result(np.full(3, np.nan), float("nan"))
+    edges = _undistort(raw_edges, k, distortion)
+    fit = fit_sphere_center(edges, camera_matrix=k, radius_m=radius_m)
+    center = fit.center_optical_m
+    if not fit.converged or not center[2] > radius_m:
+        problems.append(
+            f"sphere fit failed (converged={fit.converged}, centre {center.round(4).tolist()}"
+            " m); check the radius and the camera matrix"
+        )
+        return result(center, fit.rms_residual_px)
+    expected = np.pi * 2 * fit.silhouette_radius_px
+    if len(raw_edges) < 0.6 * expected:
+        problems.append(
+            f"sphere edge found on only {len(raw_edges)} of ~{expected:.0f} outline points; "
+            "is the sphere cut by the image border or occluded by its holder?"
+        )
+    if fit.rms_residual_px > edge_rms_limit_px:
+        problems.append(
+            f"sphere silhouette fits to {fit.rms_residual_px:.2f} px rms > "
+            f"{edge_rms_limit_px} px; check the radius, the camera matrix and the focus"
+        )
+
+    disc_center = np.asarray(fit.silhouette_center_uv)
+    # The disc must lie in the distorted image, where the highlights are searched.
+    if distortion is not None:
+        (disc_center_raw, disc_radius) = _fit_circle(raw_edges)
+    else:
+        disc_center_raw, disc_radius = disc_center, fit.silhouette_radius_px
+    search_radius = disc_radius - 2.0
+    for i in range(n_led):
+        try:
+            u, v, spread = _highlight(stack[i], disc_center_raw, search_radius,
+                                      _STABILITY_THRESHOLDS)
+        except FingerpsCalibError as exc:
+            problems.append(f"LED {i}: {exc}")
+            continue
+        uv = _undistort(np.array([[u, v]]), k, distortion)[0]
+        highlights[i], residuals[i] = uv, spread
+        if np.hypot(u - disc_center_raw[0], v - disc_center_raw[1]) > disc_radius - 3.0:
+            problems.append(
+                f"LED {i}: highlight at ({u:.1f}, {v:.1f}) is at the sphere's limb; move the "
+                "sphere nearer the optical axis"
+            )
+        try:
+            directions[i] = light_direction(uv, sphere_center=center, radius_m=radius_m,
+                                            camera_matrix=k)
+        except FingerpsCalibError as exc:
+            problems.append(f"LED {i}: {exc}")
+            continue
+        if not directions[i, 2] < 0:
+            problems.append(
+                f"LED {i}: direction {directions[i].round(3).tolist()} points away from the "
+                "camera side (z_optical >= 0); the highlight is probably a stray reflection"
+            )
+        if spread > residual_limit_px:
+            problems.append(
+                f"LED {i}: highlight centroid moves {spread:.2f} px with the threshold "
+                f"(> {residual_limit_px} px); a second reflection or saturation bloom is "
+                "merged with it, clean the sphere or lower the exposure"
+            )
+    return result(center, fit.rms_residual_px)
+
+
+def calibrate_lights_orthographic(
+    images: np.ndarray, *, mask: np.ndarray | None = None
+) -> OrthographicLightResult:
+    """Classic chrome-sphere light calibration for an orthographic camera (no intrinsics).
+
+    A circle fitted to the silhouette gives centre c and radius rho; the normal at the
+    highlight (u, v) is N = ((u - cu)/rho, -(v - cv)/rho, sqrt(1 - ...)) in the PS frame
+    (y up), the view direction V = (0, 0, 1), and l = 2 (N.V) N - V (Eq. 10 with a distant
+    camera).
+
+    Parameters
+    ----------
+    images : (K, H, W) array, any real dtype
+    mask : (H, W) bool, optional
+        The sphere's pixels (public data sets usually provide one).
+
+    Returns
+    -------
+    OrthographicLightResult
+    """
+    stack = np.asarray(images)
+    if stack.ndim != 3 or not np.issubdtype(stack.dtype, np.number):
+        raise FingerpsCalibError(f"images has shape {stack.shape}, expected (K, H, W)")
+    n_led = stack.shape[0]
+    directions = np.full((n_led, 3), np.nan)
+    highlights = np.full((n_led, 2), np.nan)
+    edges = sphere_edge_points(stack, mask=mask)
+    if len(edges) < 20:
+        return OrthographicLightResult(
+            directions, highlights, np.full(2, np.nan), float("nan"), False,
+            ("sphere not found: fewer than 20 edge points; pass the sphere's mask",),
+        )
+    center, rho = _fit_circle(edges)
+    problems = []
+    for i in range(n_led):
+        try:
+            u, v, _ = _highlight(stack[i], center, rho - 2.0, (0.5,))
+        except FingerpsCalibError as exc:
+            problems.append(f"LED {i}: {exc}")
+            continue
+        highlights[i] = u, v
+        nx, ny = (u - center[0]) / rho, -(v - center[1]) / rho
+        normal = np.array([nx, ny, np.sqrt(max(0.0, 1.0 - nx * nx - ny * ny))])
+        normal /= np.linalg.norm(normal)
+        directions[i] = 2.0 * normal[2] * normal - np.array([0.0, 0.0, 1.0])
+    return OrthographicLightResult(
+        directions, highlights, center, float(rho), not problems, tuple(problems)
+    )
+
+
+# ------------------------------------------------------------------------------ private
+
+
+def _as_stack(images: np.ndarray, name: str) -> np.ndarray:
+    stack = np.asarray(images)
+    if stack.ndim == 2:
+        stack = stack[None]
+    if stack.ndim != 3 or stack.shape[0] < 1 or not np.issubdtype(stack.dtype, np.number):
+        raise FingerpsCalibError(
+            f"{name} has shape {stack.shape} ({stack.dtype}), expected (K, H, W) or (H, W) "
+            "numbers"
+        )
+    return stack.astype(np.float64)
+
+
+def _camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:
+    k = np.asarray(camera_matrix, dtype=np.float64)
+    if k.shape != (3, 3) or not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise FingerpsCalibError(
+            f"camera_matrix has shape {k.shape}, expected (3, 3) [[fx,0,cx],[0,fy,cy],[0,0,1]] "
+            "with fx, fy > 0; load it with fingerps_calib.camera_info_yaml.load_camera_info"
+        )
+    return k
+
+
+def _rays(uv: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """(N, 3) unit rays K^-1 (u, v, 1) of (N, 2) pixels, optical frame."""
+    homogeneous = np.column_stack([uv, np.ones(len(uv))])
+    rays = np.linalg.solve(k, homogeneous.T).T
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def _fit_circle(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Algebraic (Kasa) circle fit: centre (2,) and radius of (N, 2) points."""
+    x, y = points[:, 0], points[:, 1]
+    a = np.column_stack([x, y, np.ones_like(x)])
+    (bx, by, c), *_ = np.linalg.lstsq(a, x * x + y * y, rcond=None)
+    center = np.array([bx / 2, by / 2])
+    return center, float(np.sqrt(c + center @ center))
+
+
+def _silhouette_sampson(uv: np.ndarray, k: np.ndarray, s: np.ndarray, r: float) -> np.ndarray:
+    """Signed Sampson distance (pixels) of points to the sphere's silhouette conic."""
+    k_inv = np.linalg.inv(k)
+    cone = np.outer(s, s) - (s @ s - r * r) * np.eye(3)
+    conic = k_inv.T @ cone @ k_inv
+    x = np.column_stack([uv, np.ones(len(uv))])
+    qx = x @ conic
+    value = np.einsum("ij,ij->i", qx, x)
+    return value / (2.0 * np.linalg.norm(qx[:, :2], axis=1))
+
+
+def _ellipse_radius(phi: np.ndarray, a: float, b: float, theta: float) -> np.ndarray:
+    """Distance from an ellipse's centre to its boundary along direction ``phi``."""
+    c, s = np.cos(phi - theta), np.sin(phi - theta)
+    return 1.0 / np.sqrt((c / a) ** 2 + (s / b) ** 2)
+
+
+def _weighted_centroid(weights: np.ndarray) -> np.ndarray:
+    vv, uu = np.nonzero(weights)
+    wts = weights[vv, uu]
+    return np.array([uu @ wts, vv @ wts]) / wts.sum()
+
+
+def _largest_component(binary: np.ndarray) -> np.ndarray | None:
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary.astype(np.uint8), 8)
+    if n < 2:
+        return None
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return ndimage.binary_fill_holes(labels == best)
+
+
+def _segment_bright(field: np.ndarray) -> np.ndarray | None:
+    """Largest bright region of ``field`` (Otsu on the image clipped at its 99th percentile)."""
+    low, high = np.percentile(field, [1.0, 99.0])
+    if not high > low:
+        return None
+    scaled = np.clip((field - low) / (high - low), 0.0, 1.0)
+    gray = cv2.GaussianBlur((scaled * 255).astype(np.uint8), (5, 5), 0)
+    _, binary = cv2.threshold(gray, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    return _largest_component(binary.astype(bool))
+
+
+def _undistort(uv: np.ndarray, k: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:
+    if distortion is None:
+        return uv
+    points = uv.reshape(-1, 1, 2).astype(np.float64)
+    coeffs = np.asarray(distortion, dtype=np.float64).ravel()
+    return cv2.undistortPoints(points, k, coeffs, P=k).reshape(-1, 2)

@@ -1,0 +1,172 @@
+"""Camera interface of the driver, and a simulated camera.
+
+``Camera`` is the one interface the burst sequencer needs. ``SimulatedCamera`` renders
+whatever LEDs the board has *actually* lit when ``grab`` is called (it asks a
+``lit_leds`` callable, normally reading ``BoardEmulator.lit_leds``), so a simulated burst
+goes through the serial path exactly like a real one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from types import TracebackType
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from fingerps_driver.errors import FingerpsDriverError
+
+ENCODING_DTYPES = {"mono8": np.dtype(np.uint8), "mono16": np.dtype(np.uint16)}
+"""Supported image encodings (sensor_msgs/Image names) and their dtypes."""
+
+
+class CameraError(FingerpsDriverError):
+    """The camera delivered no frame, or a frame of the wrong size or type."""
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """A monochrome camera delivering one frame per ``grab``."""
+
+    @property
+    def width(self) -> int:
+        """Image width in pixels (columns)."""
+        ...
+
+    @property
+    def height(self) -> int:
+        """Image height in pixels (rows)."""
+        ...
+
+    @property
+    def encoding(self) -> str:
+        """``"mono8"`` (uint8 frames) or ``"mono16"`` (uint16 frames)."""
+        ...
+
+    def open(self) -> None:
+        """Acquire the device."""
+        ...
+
+    def close(self) -> None:
+        """Release the device; safe to call twice."""
+        ...
+
+    def grab(self, *, timeout_s: float) -> np.ndarray:
+        """Capture one frame now.
+
+        Returns
+        -------
+        image : (height, width) uint8 or uint16
+            A new array the caller owns.
+
+        Raises
+        ------
+        CameraError
+            If no valid frame arrives within ``timeout_s``.
+        """
+        ...
+
+
+class SimulatedCamera:
+    """Camera whose frames are rendered from the LEDs lit at grab time.
+
+    Parameters
+    ----------
+    render : callable
+        ``render(lit) -> image``: ``lit`` is the ascending tuple of lit LED indices,
+        ``image`` a (height, width) array of the encoding's dtype.
+    lit_leds : callable
+        Returns the indices of the LEDs physically lit now (e.g.
+        ``BoardEmulator.lit_leds``).
+    width, height : int
+        Frame size in pixels.
+    encoding : str
+        ``"mono8"`` or ``"mono16"``.
+    """
+
+    def __init__(
+        self,
+        render: Callable[[Sequence[int]], np.ndarray],
+        lit_leds: Callable[[], Sequence[int]],
+        *,
+        width: int,
+        height: int,
+        encoding: str = "mono8",
+    ) -> None:
+        if encoding not in ENCODING_DTYPES:
+            raise ValueError(f"encoding {encoding!r} is not one of {sorted(ENCODING_DTYPES)}")
+        if width < 1 or height < 1:
+            raise ValueError(f"frame size {width}x{height} must be positive")
+        self._render = render
+        self._lit_leds = lit_leds
+        self._width = width
+        self._height = height
+        self._encoding = encoding
+        self._open = False
+        self.frames_grabbed = 0
+        """Number of frames delivered since construction."""
+
+    @property
+    def width(self) -> int:
+        return self._width
+
+    @property
+    def height(self) -> int:
+        return self._height
+
+    @property
+    def encoding(self) -> str:
+        return self._encoding
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def open(self) -> None:
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+
+    def __enter__(self) -> SimulatedCamera:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def grab(self, *, timeout_s: float) -> np.ndarray:
+        """Render one frame of the LEDs lit now; see ``Camera.grab``.
+
+        A failure of ``render`` is reported as ``CameraError`` (as a real camera's failure
+        to deliver a frame would be), with the original exception chained.
+        """
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+        if not self._open:
+            raise CameraError("SimulatedCamera is not open; call open() first")
+        lit = tuple(sorted(self._lit_leds()))
+        try:
+            image = self._render(lit)
+        except Exception as exc:  # the simulated sensor failed: no frame
+            raise CameraError(f"no frame: rendering LEDs {lit} failed ({exc!r})") from exc
+        if not isinstance(image, np.ndarray):
+            raise CameraError(f"no frame: render returned {type(image).__name__}, not an array")
+        expected = (self._height, self._width)
+        if image.shape != expected:
+            raise CameraError(
+                f"frame of shape {image.shape} instead of {expected}; the renderer and the "
+                f"camera's width/height disagree"
+            )
+        if image.dtype != ENCODING_DTYPES[self._encoding]:
+            raise CameraError(
+                f"frame of dtype {image.dtype} for encoding {self._encoding} "
+                f"(needs {ENCODING_DTYPES[self._encoding]})"
+            )
+        self.frames_grabbed += 1
+        return image
