@@ -74,7 +74,8 @@ class SimulatedCamera:
     ----------
     render : callable
         ``render(lit) -> image``: ``lit`` is the ascending tuple of lit LED indices,
-        ``image`` a (height, width) array of the encoding's dtype.
+        ``image`` a new (height, width) array of the encoding's dtype (grab hands it
+        on without copying).
     lit_leds : callable
         Returns the indices of the LEDs physically lit now (e.g.
         ``BoardEmulator.lit_leds``).

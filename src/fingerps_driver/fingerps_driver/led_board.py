@@ -87,7 +87,7 @@ class BoardState:
     levels: tuple[int, ...]
 
 
-class _Retry(Exception):
+class _RetryableError(Exception):
     """One attempt failed in a way a resend may cure."""
 
     def __init__(self, error: type[BoardError], message: str) -> None:
@@ -252,7 +252,7 @@ class LedBoard:
         ser = self._serial
         if ser is None:
             raise BoardError(f"LED board port {self._port} is not open; call open() first")
-        failure: _Retry | None = None
+        failure: _RetryableError | None = None
         for attempt in range(1 + self._retries):
             if attempt:
                 self.resends += 1
@@ -260,14 +260,14 @@ class LedBoard:
             request = Request(self._seq, command, args)
             try:
                 reply = self._attempt(ser, request)
-            except _Retry as exc:
+            except _RetryableError as exc:
                 failure = exc
                 continue
             if reply.ok:
                 return reply
             assert reply.error is not None
             if reply.error.retryable:
-                failure = _Retry(
+                failure = _RetryableError(
                     BoardProtocolError, f"board reported {reply.error.value}: {reply.message}"
                 )
                 continue
@@ -283,7 +283,7 @@ class LedBoard:
         )
 
     def _attempt(self, ser: serial.Serial, request: Request) -> Reply:
-        """Send once and wait for the matching reply; raise ``_Retry`` if worth resending."""
+        """Send once and wait for the matching reply; ``_RetryableError`` if a resend may help."""
         deadline = time.monotonic() + self._timeout_s
         try:
             ser.reset_input_buffer()
@@ -292,7 +292,7 @@ class LedBoard:
             while True:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise _Retry(BoardTimeoutError, f"no reply within {self._timeout_s} s")
+                    raise _RetryableError(BoardTimeoutError, f"no reply within {self._timeout_s} s")
                 ready, _, _ = select.select([ser.fileno()], [], [], remaining)
                 if not ready:
                     continue
@@ -300,17 +300,17 @@ class LedBoard:
                     try:
                         reply = decode_reply(line)
                     except ProtocolError as exc:
-                        raise _Retry(BoardProtocolError, f"garbled reply: {exc}") from None
+                        raise _RetryableError(BoardProtocolError, f"garbled reply: {exc}") from None
                     if reply.seq == request.seq:
                         return reply
                     # else: stale reply to an earlier attempt, keep waiting
         except serial.SerialTimeoutException as exc:
-            raise _Retry(BoardTimeoutError, f"write timed out ({exc})") from None
+            raise _RetryableError(BoardTimeoutError, f"write timed out ({exc})") from None
         except (serial.SerialException, OSError, termios.error, ValueError) as exc:
             self.close()
             raise BoardDisconnectedError(
-                f"LED board port {self._port} vanished ({exc}); reconnect the board, "
-                f"then open() again"
+                f"LED board port {self._port} vanished ({_describe(exc)}); reconnect the "
+                f"board, then open() again"
             ) from exc
 
     @staticmethod
@@ -331,3 +331,10 @@ class LedBoard:
         if len(reply.values) != 1:
             raise BoardProtocolError(f"expected one mask in the reply, got {reply.values}")
         return self._mask(reply.values[0])
+
+
+def _describe(exc: BaseException) -> str:
+    """Readable text of an I/O exception (``termios.error`` prints as a bare tuple)."""
+    if isinstance(exc, termios.error) and len(exc.args) == 2:
+        return f"[Errno {exc.args[0]}] {exc.args[1]}"
+    return str(exc) or type(exc).__name__

@@ -1,0 +1,202 @@
+"""Correction of the lighting field from images of a white flat target (paper Eq. 11).
+
+Under LED k the white target gives W_k(i, j); the portion p_k = W_k / max W_k is a property
+of the LED (its position, lobe and fall-off), not of the object: dividing a later image
+under LED k by p_k makes its illumination uniform (../shared/paper/NOTES.md Sec. 3.2).
+
+A raw W_k also holds the target's paper texture, dust and sensor noise, which must not end
+up in the map. Each W_k is therefore smoothed first:
+
+- `Smoothing.LOCAL_LINEAR` (default): Gaussian-weighted local linear regression, i.e. a
+  Gaussian filter of ``smoothing_sigma_px`` whose weights are renormalised and corrected
+  for the local slope, so it has no bias at the image border (where a plain Gaussian
+  filter with a reflected or clamped border flattens the fall-off).
+- `Smoothing.POLYNOMIAL`: least-squares fit of a 2D polynomial of total degree
+  ``polynomial_degree`` over the whole image (global; smoother, but it cannot follow a
+  field that changes faster than the polynomial).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import cv2
+import numpy as np
+
+from fingerps_calib.errors import FingerpsCalibError
+
+#: Portions are clipped below at this value so that dividing by them stays finite.
+MIN_PORTION = 1e-3
+
+
+class Smoothing(Enum):
+    """How each white-target image is smoothed before it becomes a portion map."""
+
+    LOCAL_LINEAR = "local_linear"
+    POLYNOMIAL = "polynomial"
+
+
+@dataclass(frozen=True, eq=False)
+class FlatFieldResult:
+    """Flat-field maps of K LEDs (paper Eq. 11).
+
+    Attributes
+    ----------
+    portions : (K, H, W) float32
+        p_k = smoothed W_k / max(smoothed W_k), in [MIN_PORTION, 1]; the maximum of each
+        map is 1.
+    relative_intensities : (K,) float64
+        Mean of each smoothed W_k over the image, divided by the largest of these means
+        (the brightest LED has 1).
+    """
+
+    portions: np.ndarray
+    relative_intensities: np.ndarray
+
+
+def flat_field_maps(
+    images: np.ndarray,
+    *,
+    smoothing_sigma_px: float = 20.0,
+    dark: np.ndarray | None = None,
+    smoothing: Smoothing = Smoothing.LOCAL_LINEAR,
+    polynomial_degree: int = 6,
+    saturation_level: float | None = None,
+    max_saturated_fraction: float = 1e-3,
+    min_signal_fraction: float = 0.02,
+) -> FlatFieldResult:
+    """Portion maps p_k of K LEDs from images of a white flat target (paper Eq. 11).
+
+    Parameters
+    ----------
+    images : (K, H, W) array, any real dtype
+        W_k: the white target under LED k alone.
+    smoothing_sigma_px : float
+        Gaussian sigma of `Smoothing.LOCAL_LINEAR`, pixels; large against the paper's
+        texture, small against the field's variation (the field's curvature biases the
+        map by about sigma^2 / 2 times its second derivative).
+    dark : (H, W) or (K, H, W) array, optional
+        Dark frame(s) (all LEDs off), subtracted first.
+    smoothing : Smoothing
+    polynomial_degree : int
+        Total degree of `Smoothing.POLYNOMIAL`.
+    saturation_level : float, optional
+        Full-scale value; default the dtype's maximum for integer images, 1.0 for floats.
+    max_saturated_fraction : float
+        A W_k with more of its pixels at ``saturation_level`` is refused.
+    min_signal_fraction : float
+        A W_k whose 99th percentile (after the dark) is below this fraction of
+        ``saturation_level`` is refused as nearly black.
+
+    Returns
+    -------
+    FlatFieldResult
+
+    Raises
+    ------
+    FingerpsCalibError
+        Bad shapes or options; a saturated or nearly black image (the message names the LED).
+    """
+    stack = np.asarray(images)
+    if stack.ndim != 3 or stack.shape[0] < 1 or not np.issubdtype(stack.dtype, np.number):
+        raise FingerpsCalibError(
+            f"images has shape {stack.shape} ({stack.dtype}), expected (K, H, W) numbers, "
+            "one white-target image per LED"
+        )
+    if not smoothing_sigma_px > 0:
+        raise FingerpsCalibError(f"smoothing_sigma_px = {smoothing_sigma_px} must be > 0")
+    if not isinstance(smoothing, Smoothing):
+        raise FingerpsCalibError(f"smoothing must be a Smoothing, got {smoothing!r}")
+    if saturation_level is None:
+        integer = np.issubdtype(stack.dtype, np.integer)
+        saturation_level = float(np.iinfo(stack.dtype).max) if integer else 1.0
+    n_led, h, w = stack.shape
+    values = stack.astype(np.float64)
+    for k in range(n_led):
+        fraction = np.mean(values[k] >= saturation_level)
+        if fraction > max_saturated_fraction:
+            raise FingerpsCalibError(
+                f"LED {k}: {100 * fraction:.2f}% of the white-target pixels are saturated "
+                f"(>= {saturation_level:g}); lower the exposure or the LED current and "
+                "capture the white target again"
+            )
+    if dark is not None:
+        dark = np.asarray(dark, dtype=np.float64)
+        if dark.shape not in ((h, w), (n_led, h, w)):
+            raise FingerpsCalibError(
+                f"dark has shape {dark.shape}, expected ({h}, {w}) or ({n_led}, {h}, {w})"
+            )
+        values = values - dark
+    for k in range(n_led):
+        level = np.percentile(values[k], 99.0)
+        if level < min_signal_fraction * saturation_level:
+            raise FingerpsCalibError(
+                f"LED {k}: the white-target image is nearly black (99th percentile "
+                f"{level:.3g} of full scale {saturation_level:g}); check that LED {k} lights, "
+                "that the target fills the view, and the exposure"
+            )
+    if smoothing is Smoothing.LOCAL_LINEAR:
+        smooth = _local_linear(values, smoothing_sigma_px)
+    else:
+        smooth = _polynomial(values, polynomial_degree)
+    peaks = smooth.reshape(n_led, -1).max(axis=1)
+    if not np.all(peaks > 0):
+        raise FingerpsCalibError(
+            f"LED {int(np.argmin(peaks))}: the smoothed white-target image is not positive; "
+            "is the dark frame brighter than the image?"
+        )
+    portions = np.clip(smooth / peaks[:, None, None], MIN_PORTION, 1.0).astype(np.float32)
+    means = smooth.reshape(n_led, -1).mean(axis=1)
+    return FlatFieldResult(portions=portions, relative_intensities=means / means.max())
+
+
+def _local_linear(values: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian-weighted local linear fit of each (H, W) image, evaluated at each pixel."""
+    n_led, h, w = values.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    ys, xs = (ys - h / 2) / sigma, (xs - w / 2) / sigma  # centred, in units of sigma
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        # Zero outside the image: the weights are renormalised by m0 below.
+        return cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+
+    m0 = blur(np.ones_like(xs))
+    mx, my = blur(xs) / m0, blur(ys) / m0
+    cxx = blur(xs * xs) / m0 - mx * mx
+    cxy = blur(xs * ys) / m0 - mx * my
+    cyy = blur(ys * ys) / m0 - my * my
+    det = cxx * cyy - cxy * cxy
+    out = np.empty_like(values)
+    for k in range(n_led):
+        f = values[k]
+        mf = blur(f) / m0
+        cxf = blur(xs * f) / m0 - mx * mf
+        cyf = blur(ys * f) / m0 - my * mf
+        bx = (cyy * cxf - cxy * cyf) / det
+        by = (cxx * cyf - cxy * cxf) / det
+        out[k] = mf + bx * (xs - mx) + by * (ys - my)
+    return out
+
+
+def _polynomial(values: np.ndarray, degree: int) -> np.ndarray:
+    """Least-squares 2D polynomial of total ``degree`` fitted to each (H, W) image."""
+    if not 0 <= degree <= 12:
+        raise FingerpsCalibError(f"polynomial_degree = {degree} must lie in 0..12")
+    n_led, h, w = values.shape
+    step = max(1, min(h, w) // 120)
+    v, u = np.mgrid[0:h:step, 0:w:step]
+
+    def design(uu: np.ndarray, vv: np.ndarray) -> np.ndarray:
+        x, y = 2.0 * uu / (w - 1) - 1.0, 2.0 * vv / (h - 1) - 1.0
+        # Legendre polynomials keep the least-squares problem well conditioned.
+        px = np.polynomial.legendre.legvander(x.ravel(), degree)
+        py = np.polynomial.legendre.legvander(y.ravel(), degree)
+        return np.stack([px[:, i] * py[:, j] for i in range(degree + 1)
+                         for j in range(degree + 1 - i)], axis=1)
+
+    a = design(u, v)
+    coeffs, *_ = np.linalg.lstsq(a, values[:, ::step, ::step].reshape(n_led, -1).T,
+                                 rcond=None)
+    vv, uu = np.mgrid[0:h, 0:w]
+    return (design(uu, vv) @ coeffs).T.reshape(n_led, h, w)

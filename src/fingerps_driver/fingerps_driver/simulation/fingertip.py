@@ -1,0 +1,257 @@
+"""Synthetic fingertip: a curved pad carrying a whorl of papillary ridges, as a height field.
+
+Geometry (optical frame, metres). Let (dx, dy) = (X - Xa, Y - Ya) be the offset from the
+apex (Xa, Ya, Za), the point nearest the camera. The finger points up the image (towards -Y):
+
+* tip (dy < 0): an ellipsoidal cap, r = sqrt(dx**2 + (dy / e)**2);
+* pad and shaft (dy >= 0): a cylinder of the same radius, r = |dx|, bent away from the
+  camera along its length with radius ``length_radius_m``.
+
+The base surface is Z = Za + R - sqrt(R**2 - r**2) (+ the bend), and the finger ends where its
+slope reaches ``max_slope_deg`` (r = R sin theta_max): that contour is the silhouette, the
+mask. Outside it the height field continues as a cone of the same slope, only so that ray
+casting is well defined there.
+
+Ridges are a displacement delta along the base normal (raised ridges towards the camera) of
+peak-to-valley ``ridge_height_m``, written as the equivalent Z offset delta / n_z. Their phase
+is defined on "unrolled" surface coordinates (U, V) (arc length over the cap / around the
+cylinder), so the period on the skin is ``ridge_period_m`` everywhere, also on the steep
+margins: distorted concentric ellipses (a whorl, optionally a one-armed spiral) about a core
+near the apex, warped by a low-frequency sinusoidal displacement. The ridge amplitude fades
+out within ~``core_radius`` of the core, where the phase is singular.
+
+Normals are from central differences of the full height field (step 0.25 um: truncation and
+round-off far below 1e-5 rad), so they are exact for the surface the renderer sees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from fingerps_recon.frames import optical_to_ps
+
+_WARP_WAVELENGTHS_M = (9.0e-3, 13.0e-3)
+_ALBEDO_COMPONENTS = 8
+_ALBEDO_WAVELENGTHS_M = (1.5e-3, 8.0e-3)
+_FD_STEP_M = 0.25e-6
+_NEWTON_TOLERANCE_M = 1e-12
+_NEWTON_MAX_ITER = 60
+
+
+@dataclass(frozen=True)
+class FingertipShape:
+    """Parameters of the synthetic fingertip (see the module docstring).
+
+    Attributes
+    ----------
+    apex_optical_m : (3,) float
+        Apex position, optical frame.
+    radius_m : float
+        Radius R of the cap and the cylinder.
+    tip_elongation : float
+        e: the cap's semi-axis along the finger is e * R.
+    max_slope_deg : float
+        Surface slope at the silhouette.
+    length_radius_m : float
+        Radius of the bend along the finger, away from the camera.
+    ridge_height_m, ridge_period_m : float
+        Ridge peak-to-valley height and period on the skin.
+    core_offset_m : (2,) float
+        Whorl core in unrolled coordinates (U, V) relative to the apex.
+    ridge_ellipticity : float
+        q >= 1: ridge spacing is period / sqrt(q) across and period * sqrt(q) along the finger.
+    warp_amplitude_m : float
+        Amplitude of the low-frequency warp of the ridge coordinates.
+    spiral : bool
+        One-armed spiral whorl (True) or closed concentric ellipses (False).
+    core_radius_m : float
+        Radius over which the ridge amplitude fades out at the core.
+    albedo_mean, albedo_variation : float
+        Mean albedo and the relative standard deviation of its smooth variation.
+    seed : int
+        Seed of the warp phases and the albedo pattern.
+    """
+
+    apex_optical_m: tuple[float, float, float]
+    radius_m: float
+    tip_elongation: float
+    max_slope_deg: float
+    length_radius_m: float
+    ridge_height_m: float
+    ridge_period_m: float
+    core_offset_m: tuple[float, float]
+    ridge_ellipticity: float
+    warp_amplitude_m: float
+    spiral: bool
+    core_radius_m: float
+    albedo_mean: float
+    albedo_variation: float
+    seed: int
+
+    def _base(
+        self, dx: np.ndarray, dy: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Base surface: (sag, dsag/dX, dsag/dY, inside, U, V), all shaped like ``dx``."""
+        big_r = self.radius_m
+        theta = np.deg2rad(self.max_slope_deg)
+        r_max = big_r * np.sin(theta)
+        e = self.tip_elongation
+        tip = dy < 0.0
+        ey = np.where(tip, dy / e, 0.0)
+        r = np.hypot(dx, ey)
+        inside = r <= r_max
+        rc = np.minimum(r, r_max)
+        root = np.sqrt(big_r * big_r - rc * rc)
+        cone = big_r * (1.0 - np.cos(theta)) + np.tan(theta) * (r - r_max)
+        sag = np.where(inside, big_r - root, cone)
+        slope_over_r = np.where(inside, 1.0 / root, np.tan(theta) / np.maximum(r, 1e-300))
+        gx = slope_over_r * dx
+        gy = slope_over_r * ey / e
+        shaft_dy = np.where(tip, 0.0, dy)
+        sag = sag + shaft_dy**2 / (2.0 * self.length_radius_m)
+        gy = gy + shaft_dy / self.length_radius_m
+        safe = np.maximum(rc, 1e-12)
+        unroll = np.where(rc > 1e-12, big_r * np.arcsin(safe / big_r) / safe, 1.0)
+        u = dx * unroll
+        v = np.where(tip, dy * unroll, dy)
+        return sag, gx, gy, inside, u, v
+
+    def _ridge(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Ridge displacement along the normal (towards the camera), metres."""
+        rng = np.random.default_rng(self.seed)
+        phi1, phi2 = rng.uniform(0.0, 2.0 * np.pi, size=2)
+        w = self.warp_amplitude_m
+        uu = u - self.core_offset_m[0] + w * np.sin(2.0 * np.pi * v / _WARP_WAVELENGTHS_M[0] + phi1)
+        vv = v - self.core_offset_m[1] + w * np.sin(2.0 * np.pi * u / _WARP_WAVELENGTHS_M[1] + phi2)
+        q = self.ridge_ellipticity
+        rho = np.sqrt(q * uu * uu + vv * vv / q)
+        phase = rho / self.ridge_period_m
+        if self.spiral:
+            phase = phase + np.arctan2(vv, uu) / (2.0 * np.pi)
+        fade = -np.expm1(-((rho / self.core_radius_m) ** 2))
+        return 0.5 * self.ridge_height_m * np.cos(2.0 * np.pi * phase) * fade
+
+    def height(self, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Surface Z relative to the apex plane, + away from the camera.
+
+        Parameters
+        ----------
+        dx, dy : ndarray float64
+            X - Xa, Y - Ya, metres.
+
+        Returns
+        -------
+        h, base_gx, base_gy : ndarray float64
+            Height and the gradient of the base surface (without ridges).
+        inside : ndarray bool
+            Inside the finger's silhouette contour.
+        u, v : ndarray float64
+            Unrolled surface coordinates, metres.
+        """
+        sag, gx, gy, inside, u, v = self._base(dx, dy)
+        h = sag - self._ridge(u, v) * np.sqrt(1.0 + gx * gx + gy * gy)
+        return h, gx, gy, inside, u, v
+
+    def albedo(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Smoothly varying albedo at unrolled coordinates (u, v), clipped to [0.02, 1]."""
+        rng = np.random.default_rng(self.seed + 1)
+        angles = rng.uniform(0.0, np.pi, _ALBEDO_COMPONENTS)
+        wavelengths = rng.uniform(*_ALBEDO_WAVELENGTHS_M, _ALBEDO_COMPONENTS)
+        phases = rng.uniform(0.0, 2.0 * np.pi, _ALBEDO_COMPONENTS)
+        pattern = np.zeros(np.shape(u))
+        for a, lam, ph in zip(angles, wavelengths, phases, strict=True):
+            pattern += np.cos(2.0 * np.pi * (u * np.cos(a) + v * np.sin(a)) / lam + ph)
+        pattern *= np.sqrt(2.0 / _ALBEDO_COMPONENTS)  # unit standard deviation
+        return np.clip(self.albedo_mean * (1.0 + self.albedo_variation * pattern), 0.02, 1.0)
+
+
+@dataclass(frozen=True)
+class FingertipSurface:
+    """The fingertip as seen through each pixel centre.
+
+    Attributes
+    ----------
+    points_optical : (H, W, 3) float64
+        Surface point on each pixel's ray (also outside the mask, on the continuation).
+    normals_ps : (H, W, 3) float64
+        Unit normals, PS frame; zeros outside the mask.
+    mask : (H, W) bool
+        Finger silhouette.
+    albedo : (H, W) float64
+        Albedo; zeros outside the mask.
+    """
+
+    points_optical: np.ndarray
+    normals_ps: np.ndarray
+    mask: np.ndarray
+    albedo: np.ndarray
+
+
+def _intersect(shape: FingertipShape, rx: np.ndarray, ry: np.ndarray) -> np.ndarray:
+    """Depth t (N,) of the first intersection of rays (rx, ry, 1) (N,) with the height field.
+
+    Three Newton steps with the base surface's gradient as the Jacobian (it ignores the
+    ridges), then secant steps on the pixels not yet converged.
+    """
+    xa, ya, za = shape.apex_optical_m
+    t = np.full(rx.shape, float(za))
+    for _ in range(3):
+        h, gx, gy = shape.height(t * rx - xa, t * ry - ya)[:3]
+        t_prev, f_prev = t, za + h - t
+        t = t - f_prev / (gx * rx + gy * ry - 1.0)
+    active = np.arange(rx.size)
+    for _ in range(_NEWTON_MAX_ITER):
+        ta, rxa, rya = t[active], rx[active], ry[active]
+        f = za + shape.height(ta * rxa - xa, ta * rya - ya)[0] - ta
+        done = np.abs(f) < _NEWTON_TOLERANCE_M
+        df = f - f_prev[active]
+        step = np.where(df != 0.0, f * (ta - t_prev[active]) / np.where(df != 0.0, df, 1.0), 0.0)
+        t_prev[active] = ta
+        f_prev[active] = f
+        t[active] = np.where(done, ta, ta - step)
+        active = active[~done]
+        if active.size == 0:
+            break
+    return t
+
+
+def trace_fingertip(shape: FingertipShape, rays_optical: np.ndarray) -> FingertipSurface:
+    """Intersect pixel rays with the fingertip height field.
+
+    Newton iteration on t = Za + h(t*rx - Xa, t*ry - Ya) along each ray (rays scaled to
+    z = 1, so t is the depth Z), with the base surface's gradient as the Jacobian.
+
+    Parameters
+    ----------
+    shape : FingertipShape
+    rays_optical : (H, W, 3) float64
+        Pixel rays with z = 1 (``PinholeCamera.pixel_rays``).
+
+    Returns
+    -------
+    FingertipSurface
+    """
+    xa, ya, za = shape.apex_optical_m
+    rx = rays_optical[..., 0].ravel()
+    ry = rays_optical[..., 1].ravel()
+    t = _intersect(shape, rx, ry)
+    h, _, _, inside, u, v = shape.height(t * rx - xa, t * ry - ya)
+    converged = np.abs(za + h - t) < 1e-9
+    shape_2d = rays_optical.shape[:-1]
+    t, inside, converged, u, v = (a.reshape(shape_2d) for a in (t, inside, converged, u, v))
+    mask = inside & converged
+    points = t[..., None] * rays_optical
+
+    dx = points[mask][:, 0] - xa
+    dy = points[mask][:, 1] - ya
+    eps = _FD_STEP_M
+    hx = (shape.height(dx + eps, dy)[0] - shape.height(dx - eps, dy)[0]) / (2.0 * eps)
+    hy = (shape.height(dx, dy + eps)[0] - shape.height(dx, dy - eps)[0]) / (2.0 * eps)
+    n_opt = np.stack([hx, hy, -np.ones_like(hx)], axis=-1)
+    n_opt /= np.linalg.norm(n_opt, axis=-1, keepdims=True)
+    normals = np.zeros(points.shape)
+    normals[mask] = optical_to_ps(n_opt)
+    albedo = np.zeros(mask.shape)
+    albedo[mask] = shape.albedo(u[mask], v[mask])
+    return FingertipSurface(points_optical=points, normals_ps=normals, mask=mask, albedo=albedo)

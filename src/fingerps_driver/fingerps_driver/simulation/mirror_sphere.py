@@ -1,0 +1,184 @@
+"""Shiny calibration sphere of known radius (paper Sec. 3.1), rendered by exact ray casting.
+
+Per sub-pixel sample the camera ray is intersected with the sphere. The sphere reflects a
+weak Lambertian part (so its silhouette shows against the dark background wherever some
+lit LED reaches it; under one LED the limb facing away from it is in attached shadow) plus
+a mirror part: the view ray reflected about the normal, R = 2 (N.V) N - V (Eq. 10), picks up
+the radiance of the LED's emitting disc where it hits it. The mirror image of a 1.5 mm disc
+80-100 mm away in a 4 mm ball is only ~1 pixel across, so the specular part is blurred by a
+Gaussian point-spread function (the lens), which makes the highlight a small saturating
+blob with soft edges centred on the exact mirror point (``specular_point``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from fingerps_driver.simulation.camera import PinholeCamera
+from fingerps_driver.simulation.led_field import LedRing
+from fingerps_recon.frames import optical_to_ps
+
+_ROW_CHUNK = 32
+_BISECTION_STEPS = 80
+
+
+@dataclass(frozen=True)
+class MirrorSphere:
+    """A ball with a mirror finish and a weak diffuse part.
+
+    Attributes
+    ----------
+    center_optical_m : (3,) float
+        Centre, metres, optical frame.
+    radius_m : float
+        Radius r.
+    diffuse_albedo : float
+        Albedo of the Lambertian part.
+    specular_reflectance : float
+        Mirror reflectance (steel ~0.6).
+    """
+
+    center_optical_m: tuple[float, float, float]
+    radius_m: float
+    diffuse_albedo: float
+    specular_reflectance: float
+
+    def intersect(self, rays_optical: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """First intersection of rays from the camera centre with the sphere.
+
+        Parameters
+        ----------
+        rays_optical : (..., 3) float64
+            Ray directions (any length), optical frame.
+
+        Returns
+        -------
+        points : (..., 3) float64
+            Intersection points (undefined where ``hit`` is False).
+        normals_optical : (..., 3) float64
+            Outward unit normals there.
+        hit : (...) bool
+        """
+        d = np.asarray(rays_optical, dtype=np.float64)
+        s = np.asarray(self.center_optical_m, dtype=np.float64)
+        a = np.einsum("...i,...i->...", d, d)
+        b = d @ s
+        disc = b * b - a * (s @ s - self.radius_m**2)
+        hit = disc >= 0.0
+        t = (b - np.sqrt(np.maximum(disc, 0.0))) / a
+        points = t[..., None] * d
+        return points, (points - s) / self.radius_m, hit
+
+    def pixel_window(
+        self, camera: PinholeCamera, *, margin_px: int = 2
+    ) -> tuple[tuple[int, int], tuple[int, int]]:
+        """Rows and columns (half-open, clipped to the image) covering the silhouette."""
+        s = np.asarray(self.center_optical_m, dtype=np.float64)
+        dist2 = s @ s
+        centre = s * (1.0 - self.radius_m**2 / dist2)  # of the circle of tangency
+        radius = self.radius_m * np.sqrt(1.0 - self.radius_m**2 / dist2)
+        e1 = np.cross(s, [0.0, 1.0, 0.0] if abs(s[1]) < abs(s[0]) else [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(s, e1) / np.sqrt(dist2)
+        phi = np.linspace(0.0, 2.0 * np.pi, 721)[:, None]
+        rim = centre + radius * (np.cos(phi) * e1 + np.sin(phi) * e2)
+        uv = camera.project(rim)
+        c0 = int(np.clip(np.floor(uv[:, 0].min()) - margin_px, 0, camera.width))
+        c1 = int(np.clip(np.ceil(uv[:, 0].max()) + margin_px + 1, 0, camera.width))
+        r0 = int(np.clip(np.floor(uv[:, 1].min()) - margin_px, 0, camera.height))
+        r1 = int(np.clip(np.ceil(uv[:, 1].max()) + margin_px + 1, 0, camera.height))
+        return (r0, r1), (c0, c1)
+
+    def specular_point(self, led_position_optical: np.ndarray) -> np.ndarray:
+        """Point (3,) on the sphere that mirrors a point light into the camera centre.
+
+        Its normal bisects the directions to the camera (the origin) and to the light; it lies
+        in the plane through the camera, the centre and the light. Solved by bisection on the
+        angle of the normal in that plane.
+        """
+        s = np.asarray(self.center_optical_m, dtype=np.float64)
+        light = np.asarray(led_position_optical, dtype=np.float64)
+        e1 = -s / np.linalg.norm(s)
+        e2 = (light - s) - ((light - s) @ e1) * e1
+        e2 /= np.linalg.norm(e2)
+        e3 = np.cross(e1, e2)
+
+        def mismatch(theta: float) -> float:
+            n = np.cos(theta) * e1 + np.sin(theta) * e2
+            p = s + self.radius_m * n
+            v = -p / np.linalg.norm(p)
+            lv = (light - p) / np.linalg.norm(light - p)
+            return float(np.cross(n, v + lv) @ e3)
+
+        lo, hi = 0.0, 0.5 * np.pi
+        f_lo = mismatch(lo)
+        for _ in range(_BISECTION_STEPS):
+            mid = 0.5 * (lo + hi)
+            f_mid = mismatch(mid)
+            if (f_mid > 0.0) == (f_lo > 0.0):
+                lo, f_lo = mid, f_mid
+            else:
+                hi = mid
+        theta = 0.5 * (lo + hi)
+        return s + self.radius_m * (np.cos(theta) * e1 + np.sin(theta) * e2)
+
+
+def render_sphere(
+    sphere: MirrorSphere,
+    camera: PinholeCamera,
+    leds: LedRing,
+    k: int,
+    *,
+    diffuse_shading: Callable[..., np.ndarray],
+    supersample: int,
+    psf_sigma_px: float,
+) -> np.ndarray:
+    """Noiseless radiance image of the sphere under LED ``k``.
+
+    Parameters
+    ----------
+    sphere, camera, leds : the scene
+    k : int
+        LED index.
+    diffuse_shading : callable
+        ``lambertian_shading(normals_ps, lights_ps, *, rho)`` of ``fingerps_recon``.
+    supersample : int
+        Sub-pixel samples per axis (box-filtered, anti-aliases the silhouette).
+    psf_sigma_px : float
+        Standard deviation of the Gaussian blur of the specular part, pixels.
+
+    Returns
+    -------
+    radiance : (H, W) float64
+        Zero outside the sphere (apart from the blurred highlight's tails).
+    """
+    pad = int(np.ceil(4.0 * psf_sigma_px)) + 1
+    (r0, r1), (c0, c1) = sphere.pixel_window(camera, margin_px=pad)
+    diffuse = np.zeros((r1 - r0, c1 - c0))
+    specular = np.zeros_like(diffuse)
+    for a in range(r0, r1, _ROW_CHUNK):
+        b = min(a + _ROW_CHUNK, r1)
+        rays = camera.pixel_rays(rows=(a, b), cols=(c0, c1), supersample=supersample)
+        points, normals, hit = sphere.intersect(rays)
+        p, n, d = points[hit], normals[hit], rays[hit]
+        view = -d / np.linalg.norm(d, axis=-1, keepdims=True)
+        lights = leds.directions_optical(p, k)
+        diff = leds.irradiance(p, k) * diffuse_shading(
+            optical_to_ps(n), optical_to_ps(lights), rho=sphere.diffuse_albedo
+        )
+        reflected = 2.0 * np.einsum("...i,...i->...", n, view)[..., None] * n - view
+        spec = sphere.specular_reflectance * leds.disc_radiance(p, reflected, k)
+        for out, values in ((diffuse, diff), (specular, spec)):
+            samples = np.zeros(hit.shape)
+            samples[hit] = values
+            out[a - r0 : b - r0] = samples.mean(axis=-1)
+    if psf_sigma_px > 0.0:
+        specular = cv2.GaussianBlur(
+            specular, (0, 0), psf_sigma_px, borderType=cv2.BORDER_CONSTANT
+        )
+    image = np.zeros((camera.height, camera.width))
+    image[r0:r1, c0:c1] = diffuse + specular
+    return image

@@ -1,0 +1,65 @@
+"""The one ``main`` of every fingerps node: init, spin, clean shutdown, one-line errors.
+
+A node whose construction fails on bad input (a missing file, a bad parameter value, a
+serial port that cannot be opened) ends with one line naming the problem and the fix, and
+exit code 2 - no traceback. Ctrl-C (SIGINT) and SIGTERM both end the spin and run
+``destroy_node()``, which closes the node's resources.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+
+import rclpy
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterUninitializedException,
+)
+from rclpy.executors import ExternalShutdownException, Executor, SingleThreadedExecutor
+from rclpy.node import Node
+
+EXIT_BAD_INPUT = 2
+
+_PARAMETER_ERRORS = (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterUninitializedException,
+)
+
+
+class StartupError(Exception):
+    """A node cannot start; the message names the problem and what to do."""
+
+
+def run_node(
+    make_node: Callable[[], Node],
+    *,
+    args: list[str] | None = None,
+    name: str = "fingerps",
+    executor: Callable[[], Executor] = SingleThreadedExecutor,
+    expected_errors: tuple[type[Exception], ...] = (),
+) -> int:
+    """Construct a node with ``make_node`` and spin it until shutdown; return an exit code.
+
+    ``expected_errors`` (besides ``StartupError``) raised by construction are reported as
+    one line on stderr and give exit code 2.
+    """
+    rclpy.init(args=args)
+    node: Node | None = None
+    try:
+        node = make_node()
+        spinner = executor()
+        spinner.add_node(node)
+        spinner.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (StartupError, *_PARAMETER_ERRORS, *expected_errors) as exc:
+        print(f"[{name}] error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
