@@ -3,7 +3,7 @@
 #   make test   - the whole test suite
 #   make bench  - every benchmark; figures into bench/results.json
 SHELL := /bin/bash
-.SHELLFLAGS := -eu -o pipefail -c
+.SHELLFLAGS := -e -o pipefail -c
 PYTHON ?= python3
 STAMPS := .stamps
 ROS := source tools/ros_env.sh &&

@@ -1,7 +1,6 @@
 """LED board wire protocol: encoding, decoding, checksum, framing (no I/O)."""
 
 import pytest
-
 from fingerps_driver.board_protocol import (
     MAX_LINE_BYTES,
     REPLY_SIGIL,

@@ -7,13 +7,18 @@ under LED k by p_k makes its illumination uniform (../shared/paper/NOTES.md Sec.
 A raw W_k also holds the target's paper texture, dust and sensor noise, which must not end
 up in the map. Each W_k is therefore smoothed first:
 
-- `Smoothing.LOCAL_LINEAR` (default): Gaussian-weighted local linear regression, i.e. a
-  Gaussian filter of ``smoothing_sigma_px`` whose weights are renormalised and corrected
-  for the local slope, so it has no bias at the image border (where a plain Gaussian
-  filter with a reflected or clamped border flattens the fall-off).
-- `Smoothing.POLYNOMIAL`: least-squares fit of a 2D polynomial of total degree
-  ``polynomial_degree`` over the whole image (global; smoother, but it cannot follow a
-  field that changes faster than the polynomial).
+- `Smoothing.POLYNOMIAL` (default): least-squares fit of a 2D polynomial of total degree
+  ``polynomial_degree`` (4) over the whole image, fitted to 7x7-pixel block means. An LED's
+  field on a plane (inverse square, cosine, emission lobe, lens vignetting) is this smooth;
+  on the simulated rig (fingerps_driver.simulation) degree 4 follows it to 0.2 % at worst,
+  texture and noise included, where degree 2 leaves 1 % and degree 8 starts to fit noise.
+- `Smoothing.LOCAL_LINEAR`: Gaussian-weighted local linear regression, i.e. a Gaussian
+  filter of ``smoothing_sigma_px`` whose weights are renormalised and corrected for the
+  local slope, so it has no bias at the image border (where a plain Gaussian filter with a
+  reflected or clamped border flattens the fall-off). Local, so it follows features a
+  polynomial cannot, but noisier in the corners and biased by the field's curvature
+  (sigma^2 / 2 times its second derivative); on the simulated rig 0.5 % at worst with
+  sigma = 20 px, and about ten times slower.
 """
 
 from __future__ import annotations
@@ -59,9 +64,9 @@ def flat_field_maps(
     images: np.ndarray,
     *,
     smoothing_sigma_px: float = 20.0,
-    dark: np.ndarray | None = None,
-    smoothing: Smoothing = Smoothing.LOCAL_LINEAR,
-    polynomial_degree: int = 6,
+    dark: np.ndarray | float | None = None,
+    smoothing: Smoothing = Smoothing.POLYNOMIAL,
+    polynomial_degree: int = 4,
     saturation_level: float | None = None,
     max_saturated_fraction: float = 1e-3,
     min_signal_fraction: float = 0.02,
@@ -74,11 +79,11 @@ def flat_field_maps(
         W_k: the white target under LED k alone.
     smoothing_sigma_px : float
         Gaussian sigma of `Smoothing.LOCAL_LINEAR`, pixels; large against the paper's
-        texture, small against the field's variation (the field's curvature biases the
-        map by about sigma^2 / 2 times its second derivative).
-    dark : (H, W) or (K, H, W) array, optional
-        Dark frame(s) (all LEDs off), subtracted first.
+        texture, small against the field's variation.
+    dark : float or (H, W) or (K, H, W) array, optional
+        Dark level or frame(s) (all LEDs off), subtracted first.
     smoothing : Smoothing
+        See the module docstring.
     polynomial_degree : int
         Total degree of `Smoothing.POLYNOMIAL`.
     saturation_level : float, optional
@@ -123,9 +128,10 @@ def flat_field_maps(
             )
     if dark is not None:
         dark = np.asarray(dark, dtype=np.float64)
-        if dark.shape not in ((h, w), (n_led, h, w)):
+        if dark.shape not in ((), (h, w), (n_led, h, w)):
             raise FingerpsCalibError(
-                f"dark has shape {dark.shape}, expected ({h}, {w}) or ({n_led}, {h}, {w})"
+                f"dark has shape {dark.shape}, expected a scalar level, ({h}, {w}) or "
+                f"({n_led}, {h}, {w})"
             )
         values = values - dark
     for k in range(n_led):
@@ -184,19 +190,30 @@ def _polynomial(values: np.ndarray, degree: int) -> np.ndarray:
     if not 0 <= degree <= 12:
         raise FingerpsCalibError(f"polynomial_degree = {degree} must lie in 0..12")
     n_led, h, w = values.shape
-    step = max(1, min(h, w) // 120)
-    v, u = np.mgrid[0:h:step, 0:w:step]
+    # Fitted to the means of b x b blocks (all pixels count, the problem stays small),
+    # placed at the blocks' centres. Legendre polynomials in coordinates scaled to [-1, 1]
+    # keep it well conditioned; terms P_i(x) P_j(y) with i + j <= degree.
+    b = max(1, min(h, w) // 64)
+    hb, wb = h // b, w // b
+    blocks = values[:, : hb * b, : wb * b].reshape(n_led, hb, b, wb, b).mean(axis=(2, 4))
 
-    def design(uu: np.ndarray, vv: np.ndarray) -> np.ndarray:
-        x, y = 2.0 * uu / (w - 1) - 1.0, 2.0 * vv / (h - 1) - 1.0
-        # Legendre polynomials keep the least-squares problem well conditioned.
-        px = np.polynomial.legendre.legvander(x.ravel(), degree)
-        py = np.polynomial.legendre.legvander(y.ravel(), degree)
-        return np.stack([px[:, i] * py[:, j] for i in range(degree + 1)
-                         for j in range(degree + 1 - i)], axis=1)
+    def scaled(centres: np.ndarray, size: int) -> np.ndarray:
+        return 2.0 * centres / (size - 1) - 1.0
 
-    a = design(u, v)
-    coeffs, *_ = np.linalg.lstsq(a, values[:, ::step, ::step].reshape(n_led, -1).T,
-                                 rcond=None)
-    vv, uu = np.mgrid[0:h, 0:w]
-    return (design(uu, vv) @ coeffs).T.reshape(n_led, h, w)
+    def basis(x: np.ndarray) -> np.ndarray:
+        return np.polynomial.legendre.legvander(x, degree)
+
+    bx = basis(scaled(np.arange(wb) * b + (b - 1) / 2, w))  # (wb, D)
+    by = basis(scaled(np.arange(hb) * b + (b - 1) / 2, h))  # (hb, D)
+    terms = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+    design = np.stack([np.outer(by[:, j], bx[:, i]).ravel() for i, j in terms], axis=1)
+    coeffs, *_ = np.linalg.lstsq(design, blocks.reshape(n_led, -1).T, rcond=None)  # (T, K)
+    px = basis(scaled(np.arange(w, dtype=np.float64), w))
+    py = basis(scaled(np.arange(h, dtype=np.float64), h))
+    out = np.empty(values.shape)
+    for k in range(n_led):
+        c = np.zeros((degree + 1, degree + 1))  # c[j, i] multiplies P_j(y) P_i(x)
+        for (i, j), value in zip(terms, coeffs[:, k], strict=True):
+            c[j, i] = value
+        out[k] = py @ c @ px.T
+    return out

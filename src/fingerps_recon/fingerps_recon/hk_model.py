@@ -75,8 +75,7 @@ class SkinParams:
                 object.__setattr__(self, "phase", PhaseConvention(self.phase))
             except ValueError:
                 raise FingerpsReconError(
-                    f"phase must be one of {[p.value for p in PhaseConvention]}, "
-                    f"got {self.phase!r}"
+                    f"phase must be one of {[p.value for p in PhaseConvention]}, got {self.phase!r}"
                 ) from None
         if not isinstance(self.phase, PhaseConvention):
             raise FingerpsReconError(

@@ -340,8 +340,7 @@ def depth_to_points(
         raise FingerpsReconError(f"depth_m must have shape (H, W), got {depth.shape}")
     if m.shape != depth.shape or m.dtype != bool:
         raise FingerpsReconError(
-            f"mask must be a bool array of the depth's shape {depth.shape}, got {m.shape} "
-            f"{m.dtype}"
+            f"mask must be a bool array of the depth's shape {depth.shape}, got {m.shape} {m.dtype}"
         )
     if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
         raise FingerpsReconError(

@@ -17,11 +17,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from fingerps_driver.simulation.camera import PinholeCamera
-from fingerps_driver.simulation.led_field import LedRing
 from fingerps_recon.frames import optical_to_ps
 
+from fingerps_driver.simulation.camera import PinholeCamera
+from fingerps_driver.simulation.led_field import LedRing
+
 _ROW_CHUNK = 32
+_HIGHLIGHT_SUPERSAMPLE = 8
 _BISECTION_STEPS = 80
 
 
@@ -71,6 +73,42 @@ class MirrorSphere:
         t = (b - np.sqrt(np.maximum(disc, 0.0))) / a
         points = t[..., None] * d
         return points, (points - s) / self.radius_m, hit
+
+    def nearest_points(self, rays_optical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Intersection points of rays, or for rays that miss, the limb point nearest them.
+
+        Returns (points, normals_optical), both (..., 3) float64.
+        """
+        d = np.asarray(rays_optical, dtype=np.float64)
+        _, normals, hit = self.intersect(d)
+        s = np.asarray(self.center_optical_m, dtype=np.float64)
+        closest = ((d @ s) / np.einsum("...i,...i->...", d, d))[..., None] * d
+        outward = closest - s
+        outward /= np.maximum(np.linalg.norm(outward, axis=-1, keepdims=True), 1e-300)
+        normals = np.where(hit[..., None], normals, outward)
+        return s + self.radius_m * normals, normals
+
+    def coverage(
+        self,
+        camera: PinholeCamera,
+        *,
+        rows: tuple[int, int],
+        cols: tuple[int, int],
+        supersample: int,
+    ) -> np.ndarray:
+        """Fraction (h, w) float64 of each pixel's sub-pixel rays that hit the sphere."""
+        s = np.asarray(self.center_optical_m, dtype=np.float64)
+        c = s @ s - self.radius_m**2
+        out = np.empty((rows[1] - rows[0], cols[1] - cols[0]))
+        for a in range(rows[0], rows[1], _ROW_CHUNK):
+            b = min(a + _ROW_CHUNK, rows[1])
+            d = camera.pixel_rays(rows=(a, b), cols=cols, supersample=supersample)
+            d = d.reshape(b - a, cols[1] - cols[0], -1, 3)
+            proj = d @ s
+            out[a - rows[0] : b - rows[0]] = (
+                proj * proj >= np.einsum("...i,...i->...", d, d) * c
+            ).mean(axis=-1)
+        return out
 
     def pixel_window(
         self, camera: PinholeCamera, *, margin_px: int = 2
@@ -138,6 +176,13 @@ def render_sphere(
 ) -> np.ndarray:
     """Noiseless radiance image of the sphere under LED ``k``.
 
+    The diffuse part is shaded at each pixel centre's ray (at the limb point nearest the
+    ray where the centre misses the sphere) and weighted by the pixel's coverage, measured
+    on ``supersample`` x ``supersample`` sub-pixel rays: an anti-aliased silhouette. The
+    specular part is ray-traced on 8 x 8 sub-pixel rays in a window around the mirror point
+    of the LED's centre (outside it the disc's image is zero to ~1e-8), then blurred by the
+    lens PSF.
+
     Parameters
     ----------
     sphere, camera, leds : the scene
@@ -146,7 +191,7 @@ def render_sphere(
     diffuse_shading : callable
         ``lambertian_shading(normals_ps, lights_ps, *, rho)`` of ``fingerps_recon``.
     supersample : int
-        Sub-pixel samples per axis (box-filtered, anti-aliases the silhouette).
+        Sub-pixel samples per axis for the coverage of silhouette pixels.
     psf_sigma_px : float
         Standard deviation of the Gaussian blur of the specular part, pixels.
 
@@ -155,30 +200,58 @@ def render_sphere(
     radiance : (H, W) float64
         Zero outside the sphere (apart from the blurred highlight's tails).
     """
-    pad = int(np.ceil(4.0 * psf_sigma_px)) + 1
-    (r0, r1), (c0, c1) = sphere.pixel_window(camera, margin_px=pad)
-    diffuse = np.zeros((r1 - r0, c1 - c0))
-    specular = np.zeros_like(diffuse)
-    for a in range(r0, r1, _ROW_CHUNK):
-        b = min(a + _ROW_CHUNK, r1)
-        rays = camera.pixel_rays(rows=(a, b), cols=(c0, c1), supersample=supersample)
-        points, normals, hit = sphere.intersect(rays)
-        p, n, d = points[hit], normals[hit], rays[hit]
-        view = -d / np.linalg.norm(d, axis=-1, keepdims=True)
-        lights = leds.directions_optical(p, k)
-        diff = leds.irradiance(p, k) * diffuse_shading(
-            optical_to_ps(n), optical_to_ps(lights), rho=sphere.diffuse_albedo
-        )
-        reflected = 2.0 * np.einsum("...i,...i->...", n, view)[..., None] * n - view
-        spec = sphere.specular_reflectance * leds.disc_radiance(p, reflected, k)
-        for out, values in ((diffuse, diff), (specular, spec)):
-            samples = np.zeros(hit.shape)
-            samples[hit] = values
-            out[a - r0 : b - r0] = samples.mean(axis=-1)
-    if psf_sigma_px > 0.0:
-        specular = cv2.GaussianBlur(
-            specular, (0, 0), psf_sigma_px, borderType=cv2.BORDER_CONSTANT
-        )
     image = np.zeros((camera.height, camera.width))
-    image[r0:r1, c0:c1] = diffuse + specular
+    rows, cols = sphere.pixel_window(camera)
+    if rows[1] > rows[0] and cols[1] > cols[0]:
+        coverage = sphere.coverage(camera, rows=rows, cols=cols, supersample=supersample)
+        points, normals = sphere.nearest_points(camera.pixel_rays(rows=rows, cols=cols))
+        lights = leds.directions_optical(points, k)
+        diffuse = leds.irradiance(points, k) * diffuse_shading(
+            optical_to_ps(normals), optical_to_ps(lights), rho=sphere.diffuse_albedo
+        )
+        image[rows[0] : rows[1], cols[0] : cols[1]] = coverage * diffuse
+    if sphere.specular_reflectance > 0.0:
+        _add_highlight(image, sphere, camera, leds, k, psf_sigma_px=psf_sigma_px)
     return image
+
+
+def _add_highlight(
+    image: np.ndarray,
+    sphere: MirrorSphere,
+    camera: PinholeCamera,
+    leds: LedRing,
+    k: int,
+    *,
+    psf_sigma_px: float,
+) -> None:
+    """Add LED ``k``'s blurred specular highlight to ``image`` (H, W) in place."""
+    led = leds.positions_optical[k]
+    mirror_point = sphere.specular_point(led)
+    u, v = camera.project(mirror_point)
+    # the disc's virtual image in a convex mirror of focal length r/2, in pixels
+    led_distance = np.linalg.norm(led - mirror_point)
+    image_radius_px = (
+        leds.disc_radius_m * sphere.radius_m / (2.0 * led_distance) * camera.fx / mirror_point[2]
+    )
+    half = int(np.ceil(3.0 * image_radius_px + 2.0))
+    pad = int(np.ceil(4.0 * psf_sigma_px)) + 1
+    r0, r1 = int(np.floor(v)) - half, int(np.floor(v)) + half + 2
+    c0, c1 = int(np.floor(u)) - half, int(np.floor(u)) + half + 2
+    window = np.zeros((r1 - r0 + 2 * pad, c1 - c0 + 2 * pad))
+    rv0, rv1 = max(r0, 0), min(r1, camera.height)
+    cv0, cv1 = max(c0, 0), min(c1, camera.width)
+    if rv1 <= rv0 or cv1 <= cv0:
+        return
+    rays = camera.pixel_rays(rows=(rv0, rv1), cols=(cv0, cv1), supersample=_HIGHLIGHT_SUPERSAMPLE)
+    points, normals, hit = sphere.intersect(rays)
+    p, n, d = points[hit], normals[hit], rays[hit]
+    view = -d / np.linalg.norm(d, axis=-1, keepdims=True)
+    reflected = 2.0 * np.einsum("...i,...i->...", n, view)[..., None] * n - view
+    samples = np.zeros(hit.shape)
+    samples[hit] = sphere.specular_reflectance * leds.disc_radiance(p, reflected, k)
+    window[rv0 - r0 + pad : rv1 - r0 + pad, cv0 - c0 + pad : cv1 - c0 + pad] = samples.mean(-1)
+    if psf_sigma_px > 0.0:
+        window = cv2.GaussianBlur(window, (0, 0), psf_sigma_px, borderType=cv2.BORDER_CONSTANT)
+    a0, a1 = max(r0 - pad, 0), min(r1 + pad, camera.height)
+    b0, b1 = max(c0 - pad, 0), min(c1 + pad, camera.width)
+    image[a0:a1, b0:b1] += window[a0 - r0 + pad : a1 - r0 + pad, b0 - c0 + pad : b1 - c0 + pad]

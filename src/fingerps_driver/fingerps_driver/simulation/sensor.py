@@ -3,15 +3,41 @@
 Signals are given as fractions of full scale (1.0 = ``full_well_e`` electrons = the maximum
 digital value). Per pixel the electron count is signal + ambient, with Poisson shot noise
 approximated by a Gaussian of variance equal to the count (exact enough above a few
-electrons and much faster), plus Gaussian read noise; then rounding and clipping to
-0..2**bit_depth - 1. One standard-normal draw per pixel from the caller's generator.
+electrons), plus Gaussian read noise; then rounding and clipping to 0..2**bit_depth - 1.
+
+Speed: the standard-normal deviates are drawn from the caller's generator as uniform 16-bit
+integers mapped through a table of the normal quantiles at (i + 1/2) / 65536 (rescaled to
+unit variance; tails cut at 4.3 sigma), about four times faster than
+``Generator.standard_normal`` and indistinguishable for sensor noise.
 """
 
 from __future__ import annotations
 
+import statistics
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
+
+_TABLE_BITS = 16
+
+
+@cache
+def _normal_quantiles() -> np.ndarray:
+    """(65536,) float32 unit-variance table of standard-normal quantiles."""
+    normal = statistics.NormalDist()
+    size = 1 << _TABLE_BITS
+    table = np.array([normal.inv_cdf((i + 0.5) / size) for i in range(size)])
+    table /= table.std()
+    table = table.astype(np.float32)
+    table.setflags(write=False)
+    return table
+
+
+def standard_normal(shape: tuple[int, ...], *, rng: np.random.Generator) -> np.ndarray:
+    """Standard-normal deviates (``shape``) float32 drawn from ``rng`` by table look-up."""
+    indices = rng.integers(0, 1 << _TABLE_BITS, size=shape, dtype=np.uint16)
+    return np.take(_normal_quantiles(), indices)
 
 
 @dataclass(frozen=True)
@@ -51,23 +77,22 @@ class SensorModel:
         Parameters
         ----------
         signal : (H, W) float32
-            Noiseless signal, fraction of full scale (not modified).
+            Noiseless signal, fraction of full scale, >= 0 (not modified).
         rng : numpy.random.Generator
 
         Returns
         -------
         frame : (H, W) uint8 or uint16
         """
-        electrons_per_unit = np.float32(self.full_well_e)
-        level = signal + np.float32(self.ambient_fraction)
-        sigma = np.sqrt(
-            level * np.float32(1.0 / electrons_per_unit)
-            + np.float32((self.read_noise_e / electrons_per_unit) ** 2)
-        )
-        noisy = rng.standard_normal(signal.shape, dtype=np.float32)
-        noisy *= sigma
-        noisy += level
-        noisy *= np.float32(self.max_value)
-        noisy += np.float32(0.5)
-        np.clip(noisy, 0.0, self.max_value, out=noisy)
-        return noisy.astype(self.dtype)
+        top = float(self.max_value)
+        level = signal * np.float32(top)  # digital numbers
+        level += np.float32(self.ambient_fraction * top)
+        # variance in DN^2: shot (level * top / full_well) + read
+        sigma = level * np.float32(top / self.full_well_e)
+        sigma += np.float32((self.read_noise_e * top / self.full_well_e) ** 2)
+        np.sqrt(sigma, out=sigma)
+        sigma *= standard_normal(signal.shape, rng=rng)
+        level += sigma
+        level += np.float32(0.5)
+        np.clip(level, 0.0, top, out=level)
+        return level.astype(self.dtype)

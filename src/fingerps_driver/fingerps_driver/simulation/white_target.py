@@ -12,9 +12,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from fingerps_recon.frames import optical_to_ps
+
 from fingerps_driver.simulation.camera import PinholeCamera
 from fingerps_driver.simulation.led_field import LedRing
-from fingerps_recon.frames import optical_to_ps
 
 _TEXTURE_SIGMA_PX = 1.2
 
@@ -55,13 +56,15 @@ def render_white_target(
     k: int,
     *,
     shading: Callable[..., np.ndarray],
+    albedo: np.ndarray | None = None,
 ) -> np.ndarray:
     """Noiseless radiance image (H, W) float64 of the target under LED ``k``.
 
-    ``shading`` is ``lambertian_shading(normals_ps, lights_ps, *, rho)`` of ``fingerps_recon``.
+    ``shading`` is ``lambertian_shading(normals_ps, lights_ps, *, rho)`` of ``fingerps_recon``;
+    ``albedo`` (H, W) is ``target.albedo_map(H, W)``, computed here when not given.
     """
     points = target.distance_m * camera.pixel_rays()
     lights = optical_to_ps(leds.directions_optical(points, k))
     normal = np.array([0.0, 0.0, 1.0])
-    rho = target.albedo_map(camera.height, camera.width)
+    rho = target.albedo_map(camera.height, camera.width) if albedo is None else albedo
     return leds.irradiance(points, k) * shading(normal, lights, rho=rho)

@@ -1,0 +1,319 @@
+"""demo: the whole fingerps graph on the simulated rig, end to end, with a summary.
+
+Starts driver_node, calib_node, recon_node and recorder_node as separate processes, then,
+from its own node: calibrates the flat field (white target) and the lights (shiny sphere)
+through the calibration services, captures bursts of the simulated finger, receives the
+reconstructions, measures the normals' angular error against the rig's ground truth, writes
+a normal-map PNG, a depth PNG and a PLY point cloud, and stops the graph (SIGINT, so the
+recorder finalises its bag). This is a command-line tool, so its options are arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rclpy
+from ament_index_python.packages import get_package_prefix
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import Image, PointCloud2
+
+from fingerps_driver.simulation import RigConfig, SimulatedRig
+from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
+from fingerps_recon import qos, topics
+from fingerps_recon.angular_error import summarize_angular_error
+from fingerps_recon.frames import optical_to_ps
+from fingerps_recon.image_conversion import image_to_array
+from fingerps_recon.normal_map import normal_map_rgb
+from fingerps_recon.ply import write_ply
+from fingerps_recon.point_cloud_conversion import cloud_to_points
+
+GRAPH = (
+    ("fingerps_driver", "driver_node"),
+    ("fingerps_calib", "calib_node"),
+    ("fingerps_recon", "recon_node"),
+    ("fingerps_recon", "recorder_node"),
+)
+
+
+class DemoError(Exception):
+    """The demo could not complete; the message says which step and what to do."""
+
+
+def executable(package: str, name: str) -> str:
+    """Path of an installed node executable (what ``ros2 run package name`` runs)."""
+    path = Path(get_package_prefix(package)) / "lib" / package / name
+    if not path.is_file():
+        raise DemoError(f"{path} is missing: build the workspace (make build)")
+    return str(path)
+
+
+@dataclass
+class Received:
+    """Outputs received from recon_node, by burst stamp (ns)."""
+
+    normals: dict[int, np.ndarray] = field(default_factory=dict)
+    depth: dict[int, np.ndarray] = field(default_factory=dict)
+    normal_map: dict[int, np.ndarray] = field(default_factory=dict)
+    clouds: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    latency_ms: dict[int, float] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def _stamp_ns(msg: Image | PointCloud2) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+class DemoClient(Node):
+    """Calls the graph's services and collects its outputs."""
+
+    def __init__(self) -> None:
+        super().__init__("demo", namespace=topics.NAMESPACE)
+        self.received = Received()
+        self.capture = self.create_client(CaptureBurst, topics.CAPTURE_BURST)
+        self.cal_lights = self.create_client(CalibrateLights, topics.CALIBRATE_LIGHTS)
+        self.cal_flat = self.create_client(CalibrateFlatField, topics.CALIBRATE_FLAT_FIELD)
+        self.set_driver_params = self.create_client(SetParameters, "driver/set_parameters")
+        r = self.received
+        self.create_subscription(Image, topics.NORMALS, lambda m: self._keep(r.normals, m),
+                                 qos.OUTPUT_QOS)
+        self.create_subscription(Image, topics.DEPTH, lambda m: self._keep(r.depth, m),
+                                 qos.OUTPUT_QOS)
+        self.create_subscription(Image, topics.NORMAL_MAP,
+                                 lambda m: self._keep(r.normal_map, m), qos.OUTPUT_QOS)
+        self.create_subscription(PointCloud2, topics.POINTS, self._on_cloud, qos.OUTPUT_QOS)
+
+    def _keep(self, store: dict[int, np.ndarray], msg: Image) -> None:
+        with self.received.lock:
+            store[_stamp_ns(msg)] = image_to_array(msg)
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        stamp = _stamp_ns(msg)
+        with self.received.lock:
+            self.received.latency_ms[stamp] = (time.time_ns() - stamp) / 1e6
+            self.received.clouds[stamp] = cloud_to_points(msg)
+
+    def call(self, client, request, *, timeout: float, what: str):  # noqa: ANN001, ANN201
+        """Call a service and return its response, or raise DemoError naming ``what``."""
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise DemoError(f"{what}: service {client.srv_name} not available after "
+                            f"{timeout:.0f} s; see the node's log above")
+        future = client.call_async(request)
+        deadline = time.monotonic() + timeout
+        while not future.done() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if not future.done():
+            raise DemoError(f"{what}: no answer from {client.srv_name} within {timeout:.0f} s")
+        return future.result()
+
+    def set_scene(self, scene: str) -> None:
+        """Put an object in front of the simulated camera (the driver's sim.scene)."""
+        value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=scene)
+        request = SetParameters.Request(parameters=[ParameterMsg(name="sim.scene",
+                                                                 value=value)])
+        response = self.call(self.set_driver_params, request, timeout=20.0,
+                             what=f"placing the {scene}")
+        if not response.results[0].successful:
+            raise DemoError(f"placing the {scene}: {response.results[0].reason}")
+
+
+def start_graph(log_dir: Path, bags_dir: Path, extra_env: dict[str, str]) -> list[
+        subprocess.Popen]:
+    """Start the graph's nodes as separate processes, logging to ``log_dir``."""
+    env = {**os.environ, **extra_env}
+    processes = []
+    for package, name in GRAPH:
+        args = [executable(package, name)]
+        if name == "recorder_node":
+            args += ["--ros-args", "-p", f"bags_dir:={bags_dir}"]
+        log = open(log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed by the process end
+        processes.append(subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, env=env))
+        log.close()
+    return processes
+
+
+def stop_graph(processes: list[subprocess.Popen], *, timeout: float = 15.0) -> list[int]:
+    """SIGINT every process (as Ctrl-C does), then wait; kill what does not stop."""
+    for proc in processes:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    codes = []
+    for proc in processes:
+        try:
+            codes.append(proc.wait(timeout=timeout))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            codes.append(proc.wait())
+    return codes
+
+
+def write_outputs(out: Path, normals_ps: np.ndarray, mask: np.ndarray, depth: np.ndarray,
+                  points: np.ndarray, intensity: np.ndarray, normal_map: np.ndarray) -> None:
+    """normal_map.png (as published), normals_raw.png, depth.png (near = bright), cloud.ply."""
+    out.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out / "normal_map.png"), cv2.cvtColor(normal_map, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(out / "normals_raw.png"),
+                cv2.cvtColor(normal_map_rgb(normals_ps, mask=mask), cv2.COLOR_RGB2BGR))
+    finite = np.isfinite(depth)
+    picture = np.zeros(depth.shape, dtype=np.uint8)
+    if finite.any():
+        near, far = np.percentile(depth[finite], [1, 99])
+        scaled = (far - depth[finite]) / max(far - near, 1e-9)
+        picture[finite] = np.clip(25 + 230 * scaled, 0, 255).astype(np.uint8)
+    cv2.imwrite(str(out / "depth.png"), picture)
+    write_ply(out / "cloud.ply", points, intensity=intensity)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the demo; return the exit code."""
+    out = Path(args.out)
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    t_start = time.monotonic()
+    rig = SimulatedRig(RigConfig())
+    truth = rig.finger_truth()
+    processes = start_graph(logs, Path(args.bags), {})
+    rclpy.init()
+    node = DemoClient()
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, name="demo_spin", daemon=True)
+    spinner.start()
+    timings: dict[str, float] = {}
+    try:
+        t0 = time.monotonic()
+        node.set_scene("white_target")
+        flat = node.call(node.cal_flat, CalibrateFlatField.Request(), timeout=60.0,
+                         what="flat-field calibration")
+        if not flat.success:
+            raise DemoError(f"flat-field calibration failed: {flat.message}")
+        timings["calibrate_flat_field_s"] = time.monotonic() - t0
+        t0 = time.monotonic()
+        node.set_scene("sphere")
+        lights = node.call(node.cal_lights,
+                           CalibrateLights.Request(sphere_radius=rig.config.sphere_radius_m),
+                           timeout=60.0, what="light calibration")
+        if not lights.success:
+            raise DemoError(f"light calibration failed: {lights.message}")
+        timings["calibrate_lights_s"] = time.monotonic() - t0
+        directions = optical_to_ps(np.array([[d.x, d.y, d.z]
+                                             for d in lights.calibration.directions]))
+        light_err = np.degrees(np.arccos(np.clip(
+            np.sum(directions * rig.light_directions_ps(), axis=1), -1, 1)))
+        node.set_scene("finger")
+        time.sleep(0.5)  # let recon_node receive the transient-local calibration
+        capture_ms = []
+        t_first = time.monotonic()
+        for _ in range(args.bursts):
+            t0 = time.monotonic()
+            response = node.call(node.capture, CaptureBurst.Request(), timeout=30.0,
+                                 what="burst capture")
+            if not response.success:
+                raise DemoError(f"burst capture failed: {response.message}")
+            capture_ms.append((time.monotonic() - t0) * 1e3)
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            with node.received.lock:
+                have = len(node.received.clouds)
+                complete = have >= args.bursts and len(node.received.normals) >= args.bursts
+            if complete:
+                break
+            time.sleep(0.05)
+        t_last = time.monotonic()
+    finally:
+        codes = stop_graph(processes)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+    r = node.received
+    if not r.clouds or not r.normals:
+        raise DemoError(f"no reconstruction arrived; see {logs}/recon_node.log")
+    errors = []
+    for stamp, normals_optical in sorted(r.normals.items()):
+        est = optical_to_ps(normals_optical)
+        both = truth.mask & np.any(est != 0, axis=2)
+        errors.append(summarize_angular_error(est, truth.normals_ps, mask=both))
+    last = max(r.clouds)
+    est = optical_to_ps(r.normals[last])
+    mask = np.any(est != 0, axis=2)
+    write_outputs(out, est, mask, r.depth[last], *r.clouds[last], r.normal_map[last])
+    coverage = float((mask & truth.mask).sum() / truth.mask.sum())
+    mae = float(np.mean([e.mean for e in errors]))
+    figures = {
+        "bursts_requested": args.bursts,
+        "bursts_captured": len(capture_ms),
+        "bursts_reconstructed": len(r.clouds),
+        "e2e.bursts_per_s": len(r.clouds) / max(t_last - t_first, 1e-9),
+        "e2e.latency_ms_median": float(np.median(list(r.latency_ms.values()))),
+        "e2e.mae_deg": mae,
+        "capture_ms_median": float(np.median(capture_ms)),
+        "normals_median_deg": float(np.mean([e.median for e in errors])),
+        "normals_p95_deg": float(np.mean([e.p95 for e in errors])),
+        "finger_coverage": coverage,
+        "light_direction_error_deg_max": float(light_err.max()),
+        **timings,
+        "total_s": time.monotonic() - t_start,
+    }
+    print_summary(figures, out, codes)
+    if args.figures:
+        import json
+        Path(args.figures).write_text(json.dumps(figures, indent=2) + "\n")
+    bad = [name for (_, name), code in zip(GRAPH, codes, strict=True) if code != 0]
+    if bad:
+        print(f"demo: {', '.join(bad)} did not exit cleanly; see {logs}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def print_summary(f: dict[str, float], out: Path, codes: list[int]) -> None:
+    """The demo's summary, for people."""
+    print("fingerps demo on the simulated rig")
+    print(f"  bursts captured / reconstructed : {f['bursts_captured']} / "
+          f"{f['bursts_reconstructed']}")
+    print(f"  normals vs ground truth (finger): mean {f['e2e.mae_deg']:.2f} deg, median "
+          f"{f['normals_median_deg']:.2f} deg, p95 {f['normals_p95_deg']:.2f} deg, "
+          f"coverage {100 * f['finger_coverage']:.0f}%")
+    print(f"  light calibration               : worst LED direction error "
+          f"{f['light_direction_error_deg_max']:.2f} deg vs distant-light truth")
+    print(f"  capture (service round trip)    : median {f['capture_ms_median']:.0f} ms/burst")
+    print(f"  burst -> point cloud latency    : median {f['e2e.latency_ms_median']:.0f} ms")
+    print(f"  throughput                      : {f['e2e.bursts_per_s']:.2f} bursts/s")
+    print(f"  calibration                     : flat field "
+          f"{f['calibrate_flat_field_s']:.1f} s, lights {f['calibrate_lights_s']:.1f} s")
+    print(f"  outputs                         : {out}/normal_map.png, depth.png, cloud.ply")
+    print(f"  node exit codes                 : {codes}; total {f['total_s']:.1f} s")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``ros2 run fingerps_driver demo``."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    parser.add_argument("--bags", default="bags", help="where the session is recorded")
+    parser.add_argument("--bursts", type=int, default=5, help="finger bursts to capture")
+    parser.add_argument("--figures", help="also write the figures as JSON to this file")
+    args = parser.parse_args(argv)
+    if args.bursts < 1:
+        parser.error("--bursts must be at least 1")
+    try:
+        return run(args)
+    except DemoError as exc:
+        print(f"demo: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

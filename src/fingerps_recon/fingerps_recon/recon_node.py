@@ -1,0 +1,208 @@
+"""recon_node: complete bursts in; normals, normal map, depth and a point cloud out.
+
+Thin ROS adapter around ``fingerps_recon.pipeline.reconstruct``. The burst callback only
+enqueues; a worker thread reconstructs, so a slow reconstruction never blocks intake. The
+queue is bounded and drops the oldest burst, and the drops are counted.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from sensor_msgs.msg import Image, PointCloud2
+
+from fingerps_msgs.msg import Burst, FlatField, LightCalibration
+from fingerps_recon import qos, topics
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.frames import optical_to_ps, ps_to_optical
+from fingerps_recon.image_conversion import array_to_image, image_to_array
+from fingerps_recon.node_runner import run_node
+from fingerps_recon.normal_map import normal_map_rgb
+from fingerps_recon.parameters import ParameterChecks, descriptor
+from fingerps_recon.pipeline import ReconstructionOptions, reconstruct
+from fingerps_recon.point_cloud_conversion import points_to_cloud
+
+_FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
+
+
+class ReconNode(Node):
+    """Reconstructs every complete burst with the calibration in force."""
+
+    def __init__(self) -> None:
+        super().__init__("recon", namespace=topics.NAMESPACE)
+        self._checks = ParameterChecks(self)
+        p = self.declare_parameter
+        p("queue_depth", 2, descriptor(
+            "Bursts waiting for reconstruction; the oldest is dropped beyond this",
+            min_value=1, max_value=100, integer=True, read_only=True))
+        p("mask_threshold", 0.15, descriptor(
+            "Finger mask: fraction of the brightest level a pixel must exceed",
+            min_value=0.01, max_value=0.9))
+        p("enhance", True, descriptor(
+            "Publish the normal map after ridge enhancement (paper Eq. 12); the normals "
+            "topic always carries the unenhanced normals"))
+        p("w", 7, descriptor("Ridge enhancement patch size (odd), pixels", min_value=3,
+                             max_value=51, integer=True))
+        p("k", 2.5, descriptor("Ridge enhancement gain", min_value=0.0, max_value=20.0))
+        p("working_distance", 0.09, descriptor(
+            "Camera-to-finger distance along the optical axis, metres (metric scale of "
+            "depth)", min_value=0.005, max_value=2.0))
+        p("mono16_full_scale", 4095.0, descriptor(
+            "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
+            max_value=65535.0))
+        self._checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
+
+        self._queue: deque[Burst] = deque(maxlen=int(self.get_parameter("queue_depth").value))
+        self._cv = threading.Condition()
+        self._stop = False
+        self._dropped = 0
+        self._done = 0
+        self._failed = 0
+        self._last_error = ""
+        self._lights: LightCalibration | None = None
+        self._flat: FlatField | None = None
+        self._flat_maps: np.ndarray | None = None
+
+        self.create_subscription(Burst, topics.BURST, self._on_burst, qos.BURST_QOS)
+        self.create_subscription(LightCalibration, topics.LIGHT_CALIBRATION, self._on_lights,
+                                 qos.CALIBRATION_QOS)
+        self.create_subscription(FlatField, topics.FLAT_FIELD, self._on_flat,
+                                 qos.CALIBRATION_QOS)
+        self._pub_normals = self.create_publisher(Image, topics.NORMALS, qos.OUTPUT_QOS)
+        self._pub_map = self.create_publisher(Image, topics.NORMAL_MAP, qos.OUTPUT_QOS)
+        self._pub_depth = self.create_publisher(Image, topics.DEPTH, qos.OUTPUT_QOS)
+        self._pub_points = self.create_publisher(PointCloud2, topics.POINTS, qos.OUTPUT_QOS)
+        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name="recon_worker")
+        self._worker.start()
+        self.get_logger().info("recon ready: waiting for a light calibration and bursts")
+
+    # ------------------------------------------------------------------ intake
+    def _on_lights(self, msg: LightCalibration) -> None:
+        self._lights = msg
+        self.get_logger().info(f"light calibration received: {len(msg.directions)} LEDs")
+
+    def _on_flat(self, msg: FlatField) -> None:
+        try:
+            maps = np.stack([image_to_array(m) for m in msg.maps]).astype(np.float32)
+        except (FingerpsReconError, ValueError) as exc:
+            self.get_logger().error(f"flat field refused: {exc}")
+            return
+        self._flat, self._flat_maps = msg, maps
+        self.get_logger().info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
+
+    def _on_burst(self, msg: Burst) -> None:
+        with self._cv:
+            if len(self._queue) == self._queue.maxlen:
+                self._dropped += 1
+                self.get_logger().warning(
+                    f"reconstruction is behind: dropped the oldest burst ({self._dropped} so "
+                    "far)", throttle_duration_sec=5.0)
+            self._queue.append(msg)
+            self._cv.notify()
+
+    # ------------------------------------------------------------------ work
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._stop:
+                    self._cv.wait(timeout=0.5)
+                if self._stop:
+                    return
+                burst = self._queue.popleft()
+            try:
+                self._reconstruct(burst)
+                self._done += 1
+            except FingerpsReconError as exc:
+                self._failed += 1
+                self._last_error = str(exc)
+                self.get_logger().error(f"burst {burst.burst_id}: {exc}",
+                                        throttle_duration_sec=5.0)
+
+    def _options(self) -> ReconstructionOptions:
+        g = self.get_parameter
+        return ReconstructionOptions(
+            mask_threshold=float(g("mask_threshold").value), enhance=bool(g("enhance").value),
+            w=int(g("w").value), k=float(g("k").value),
+            working_distance_m=float(g("working_distance").value))
+
+    def _reconstruct(self, burst: Burst) -> None:
+        lights = self._lights
+        if lights is None:
+            raise FingerpsReconError(
+                "no light calibration yet: call the calibrate_lights service (or start "
+                "calib_node with a saved calibration) before sending bursts")
+        frames = sorted(burst.frames, key=lambda f: f.led_index)
+        if [f.led_index for f in frames] != list(range(len(lights.directions))):
+            raise FingerpsReconError(
+                f"burst {burst.burst_id} has LEDs {[f.led_index for f in frames]}, the "
+                f"calibration {len(lights.directions)} LEDs: a frame is missing; recapture")
+        images = np.stack([image_to_array(f.image) for f in frames])
+        encoding = frames[0].image.encoding
+        full_scale = float(self.get_parameter("mono16_full_scale").value) \
+            if encoding == "mono16" else _FULL_SCALE.get(encoding, 255.0)
+        directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
+        intensities = np.asarray(lights.relative_intensities, dtype=np.float64)
+        maps = self._flat_maps
+        if maps is not None and maps.shape != images.shape:
+            self.get_logger().warning(
+                f"flat field {maps.shape} does not fit the images {images.shape}; not used",
+                throttle_duration_sec=10.0)
+            maps = None
+        dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
+        k_matrix = np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3)
+        result = reconstruct(
+            images, lights_ps=optical_to_ps(directions), camera_matrix=k_matrix,
+            full_scale=full_scale,
+            intensities=intensities if intensities.size == len(frames) else None,
+            portions=maps, dark=dark, options=self._options())
+        header = burst.header
+        normals_optical = ps_to_optical(result.normals_ps).astype(np.float32)
+        self._pub_normals.publish(array_to_image(normals_optical, encoding="32FC3",
+                                                 header=header))
+        shown = result.enhanced_ps if result.enhanced_ps is not None else result.normals_ps
+        self._pub_map.publish(array_to_image(normal_map_rgb(shown, mask=result.mask),
+                                             encoding="rgb8", header=header))
+        self._pub_depth.publish(array_to_image(result.depth_m, encoding="32FC1", header=header))
+        self._pub_points.publish(points_to_cloud(result.points_optical, result.point_albedo,
+                                                 header=header))
+        self.get_logger().info(
+            f"burst {burst.burst_id}: {result.mask.sum()} px, "
+            f"{result.timings_ms['total']:.0f} ms", throttle_duration_sec=2.0)
+
+    # ------------------------------------------------------------------ diagnostics, exit
+    def _publish_diagnostics(self) -> None:
+        status = DiagnosticStatus(name=f"{self.get_name()}: reconstruction")
+        status.level = DiagnosticStatus.OK if not self._last_error else DiagnosticStatus.WARN
+        status.message = "ok" if not self._last_error else self._last_error
+        status.values = [KeyValue(key="bursts_done", value=str(self._done)),
+                         KeyValue(key="bursts_failed", value=str(self._failed)),
+                         KeyValue(key="bursts_dropped", value=str(self._dropped)),
+                         KeyValue(key="calibrated", value=str(self._lights is not None))]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diag.publish(array)
+
+    def destroy_node(self) -> None:
+        """Stop the worker (it finishes the burst in hand) and destroy the node."""
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._worker.is_alive():
+            self._worker.join(timeout=10.0)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``ros2 run fingerps_recon recon_node``."""
+    return run_node(ReconNode, args=args, name="recon_node",
+                    expected_errors=(FingerpsReconError,))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
