@@ -85,8 +85,8 @@ def test_burst_frames_are_tagged_with_the_led_actually_lit(rig):
     # the emulator switched exactly one LED at a time, in order, then all off
     assert _masks_since(rig.emulator, start) == [1 << i for i in LEDS] + [0]
     assert rig.emulator.lit_mask == 0
-    assert result.duration_s < 0.2
     print(f"\nburst of 7 frames + dark over the pty: {result.duration_s * 1e3:.1f} ms")
+    assert result.duration_s < 1.0  # ~5 ms when idle; the 0.2 s budget is not a CI bound
 
 
 def test_order_levels_and_exposures_are_applied_and_tagged(rig):

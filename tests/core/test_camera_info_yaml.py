@@ -100,7 +100,7 @@ def test_arrays_are_read_only_copies():
 
 def test_missing_file_names_the_file(tmp_path):
     path = tmp_path / "nope.yaml"
-    with pytest.raises(FingerpsCalibError, match="nope.yaml.*does not exist.*calibrat"):
+    with pytest.raises(FingerpsCalibError, match=r"nope.yaml.*does not exist.*calibrat"):
         load_camera_info(path)
 
 
@@ -116,7 +116,7 @@ def test_missing_key_names_file_and_key(tmp_path, key):
         end += 1
     path = tmp_path / "broken.yaml"
     path.write_text("\n".join(lines[:start] + lines[end:]) + "\n")
-    with pytest.raises(FingerpsCalibError, match=f"broken.yaml.*{key}.*recalibrate"):
+    with pytest.raises(FingerpsCalibError, match=rf"broken.yaml.*{key}.*recalibrate"):
         load_camera_info(path)
 
 
@@ -138,20 +138,20 @@ def test_bad_contents_are_named(tmp_path, old, new, message):
     assert old in ROS_TEXT
     path = tmp_path / "bad.yaml"
     path.write_text(ROS_TEXT.replace(old, new, 1))
-    with pytest.raises(FingerpsCalibError, match=f"bad.yaml.*{message}"):
+    with pytest.raises(FingerpsCalibError, match=rf"bad.yaml.*{message}"):
         load_camera_info(path)
 
 
 def test_not_yaml_or_not_a_mapping(tmp_path):
     path = tmp_path / "junk.yaml"
     path.write_text("image_width: [unclosed\n")
-    with pytest.raises(FingerpsCalibError, match="junk.yaml.*not valid YAML"):
+    with pytest.raises(FingerpsCalibError, match=r"junk.yaml.*not valid YAML"):
         load_camera_info(path)
     path.write_text("- 1\n- 2\n")
-    with pytest.raises(FingerpsCalibError, match="junk.yaml.*mapping"):
+    with pytest.raises(FingerpsCalibError, match=r"junk.yaml.*mapping"):
         load_camera_info(path)
 
 
 def test_save_into_missing_directory_says_so(tmp_path):
-    with pytest.raises(FingerpsCalibError, match="cannot write.*directory exists"):
+    with pytest.raises(FingerpsCalibError, match=r"cannot write.*directory exists"):
         save_camera_info(tmp_path / "no" / "such" / "dir.yaml", _intrinsics())

@@ -141,7 +141,7 @@ def test_thin_layer_limit_is_proportional_to_optical_depth() -> None:
 
 def test_zero_scale_is_lambertian() -> None:
     rng = np.random.default_rng(2)
-    n = _unit(rng.normal(size=(300, 3)) + [0, 0, 1.5])
+    n = _unit(rng.normal(size=(300, 3)) + np.array([0, 0, 1.5]))
     light = _unit([0.6, 0.0, 0.8])
     rho = rng.uniform(0.2, 0.9, size=300)
     got = hk_reflectance(n, light, Z, rho=rho, scale=0.0)

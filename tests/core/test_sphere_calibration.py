@@ -120,10 +120,10 @@ def test_fit_sphere_center_residual_is_in_pixels():
 def test_fit_sphere_center_rejects_bad_input():
     with pytest.raises(FingerpsCalibError, match=r"\(N, 2\)"):
         fit_sphere_center(np.zeros((3, 2)), camera_matrix=K, radius_m=RADIUS)
-    with pytest.raises(FingerpsCalibError, match="radius"):
+    with pytest.raises(FingerpsCalibError, match=r"radius"):
         fit_sphere_center(_silhouette_points(CENTER, RADIUS, 50), camera_matrix=K,
                           radius_m=0.0)
-    with pytest.raises(FingerpsCalibError, match="camera_matrix"):
+    with pytest.raises(FingerpsCalibError, match=r"camera_matrix"):
         fit_sphere_center(_silhouette_points(CENTER, RADIUS, 50), camera_matrix=np.eye(2),
                           radius_m=RADIUS)
 
@@ -141,11 +141,14 @@ def test_edge_points_lie_on_the_true_silhouette():
     error_px = (beta - np.arcsin(RADIUS / np.linalg.norm(CENTER))) * K[0, 0]
     outline_px = 2 * np.pi * K[0, 0] * np.tan(np.arcsin(RADIUS / np.linalg.norm(CENTER)))
     assert len(edges) > 0.9 * outline_px  # about one point per pixel of outline
-    assert np.sqrt(np.mean(error_px**2)) < 0.05
-    assert np.abs(error_px).max() < 0.2
+    # Unbiased on a sharp step; the scatter (~0.08 px) is the pixel-phase dependence of
+    # interpolating a one-pixel-wide edge, which averages out in the fit.
+    assert abs(np.mean(error_px)) < 0.03
+    assert np.sqrt(np.mean(error_px**2)) < 0.12
+    assert np.abs(error_px).max() < 0.35
     fit = fit_sphere_center(edges, camera_matrix=K, radius_m=RADIUS)
-    assert fit.rms_residual_px < 0.05
-    assert np.linalg.norm(fit.center_optical_m - CENTER) < 0.05e-3
+    assert fit.rms_residual_px < 0.12
+    assert np.linalg.norm(fit.center_optical_m - CENTER) < 0.03e-3
 
 
 def test_edge_points_from_a_mask():
@@ -154,7 +157,7 @@ def test_edge_points_from_a_mask():
     fit = fit_sphere_center(edges, camera_matrix=K, radius_m=RADIUS)
     assert fit.rms_residual_px < 0.3  # a binary mask is only good to about a pixel
     assert np.linalg.norm(fit.center_optical_m - CENTER) < 0.2e-3
-    with pytest.raises(FingerpsCalibError, match="mask"):
+    with pytest.raises(FingerpsCalibError, match=r"mask"):
         sphere_edge_points(np.zeros((2, H, W)), mask=np.ones((H, W + 1), bool))
 
 
@@ -178,7 +181,7 @@ def test_highlight_centroid_only_searches_the_disc():
     image = 10.0 + _blob(100.0, 100.0, 1.5, 200.0) + _blob(20.0, 20.0, 1.5, 250.0)
     u, v = highlight_centroid(image, disc_center_uv=(100.0, 100.0), disc_radius_px=30.0)
     assert np.hypot(u - 100.0, v - 100.0) < 0.01
-    with pytest.raises(FingerpsCalibError, match="no highlight"):
+    with pytest.raises(FingerpsCalibError, match=r"no highlight"):
         highlight_centroid(np.full((H, W), 7.0), disc_center_uv=(100.0, 100.0),
                            disc_radius_px=30.0)
 
@@ -194,7 +197,7 @@ def test_light_direction_inverts_the_mirror_reflection():
     centre_uv = _project(CENTER[None, :] - RADIUS * CENTER / np.linalg.norm(CENTER))[0]
     got = light_direction(centre_uv, sphere_center=CENTER, radius_m=RADIUS, camera_matrix=K)
     np.testing.assert_allclose(got, -CENTER / np.linalg.norm(CENTER), atol=1e-10)
-    with pytest.raises(FingerpsCalibError, match="misses the sphere"):
+    with pytest.raises(FingerpsCalibError, match=r"misses the sphere"):
         light_direction(np.array([1.0, 1.0]), sphere_center=CENTER, radius_m=RADIUS,
                         camera_matrix=K)
 
@@ -240,9 +243,9 @@ def test_calibrate_lights_reports_failures_instead_of_bad_results():
 def test_calibrate_lights_rejects_bad_shapes():
     with pytest.raises(FingerpsCalibError, match=r"\(K, H, W\)"):
         calibrate_lights(np.zeros((H, W)), camera_matrix=K, radius_m=RADIUS)
-    with pytest.raises(FingerpsCalibError, match="camera_matrix"):
+    with pytest.raises(FingerpsCalibError, match=r"camera_matrix"):
         calibrate_lights(np.zeros((2, H, W)), camera_matrix=np.eye(4), radius_m=RADIUS)
-    with pytest.raises(FingerpsCalibError, match="radius"):
+    with pytest.raises(FingerpsCalibError, match=r"radius"):
         calibrate_lights(np.zeros((2, H, W)), camera_matrix=K, radius_m=-1.0)
 
 
@@ -254,7 +257,7 @@ def test_orthographic_fallback():
     disc = np.clip(rho - np.hypot(uu - cu, vv - cv) + 0.5, 0, 1)
     lights = np.array([[0.3, 0.2, 0.93], [-0.5, 0.1, 0.86], [0.0, -0.6, 0.8]])
     lights /= np.linalg.norm(lights, axis=1, keepdims=True)
-    normals = lights + [0.0, 0.0, 1.0]
+    normals = lights + np.array([0.0, 0.0, 1.0])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     images = np.stack([
         30 * disc + _blob(cu + rho * n[0], cv - rho * n[1], 1.5, 200.0) for n in normals

@@ -48,21 +48,21 @@ class CalibNode(Node):
             max_value=200.0))
         p("camera_name", "fingerps_sim", descriptor("Camera name written into calibrations"))
 
-        self._services = MutuallyExclusiveCallbackGroup()
-        self._clients = ReentrantCallbackGroup()
+        self._service_group = MutuallyExclusiveCallbackGroup()
+        self._client_group = ReentrantCallbackGroup()
         self._capture = self.create_client(CaptureBurst, topics.CAPTURE_BURST,
-                                           callback_group=self._clients)
+                                           callback_group=self._client_group)
         self._camera_info: CameraInfo | None = None
         self.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_camera_info,
-                                 qos.SENSOR_QOS, callback_group=self._clients)
+                                 qos.SENSOR_QOS, callback_group=self._client_group)
         self._pub_lights = self.create_publisher(LightCalibration, topics.LIGHT_CALIBRATION,
                                                  qos.CALIBRATION_QOS)
         self._pub_flat = self.create_publisher(FlatField, topics.FLAT_FIELD,
                                                qos.CALIBRATION_QOS)
         self.create_service(CalibrateLights, topics.CALIBRATE_LIGHTS, self._on_lights,
-                            callback_group=self._services)
+                            callback_group=self._service_group)
         self.create_service(CalibrateFlatField, topics.CALIBRATE_FLAT_FIELD, self._on_flat,
-                            callback_group=self._services)
+                            callback_group=self._service_group)
         self._lights: LightCalibration | None = None
         self._flat: FlatField | None = None
         self.get_logger().info("calib ready")
@@ -81,7 +81,7 @@ class CalibNode(Node):
                 f"no images in the request and the driver's {self._capture.srv_name} service "
                 "is not available: start driver_node or send the images in the request")
         done = threading.Event()
-        future = self._capture.call_async(CaptureBurst.Request())
+        future = self._capture.call_async(CaptureBurst.Request(response_only=True))
         future.add_done_callback(lambda _: done.set())
         if not done.wait(timeout):
             raise FingerpsCalibError(

@@ -8,10 +8,11 @@ A raw W_k also holds the target's paper texture, dust and sensor noise, which mu
 up in the map. Each W_k is therefore smoothed first:
 
 - `Smoothing.POLYNOMIAL` (default): least-squares fit of a 2D polynomial of total degree
-  ``polynomial_degree`` (4) over the whole image, fitted to 7x7-pixel block means. An LED's
-  field on a plane (inverse square, cosine, emission lobe, lens vignetting) is this smooth;
-  on the simulated rig (fingerps_driver.simulation) degree 4 follows it to 0.2 % at worst,
-  texture and noise included, where degree 2 leaves 1 % and degree 8 starts to fit noise.
+  ``polynomial_degree`` (4) over the whole image, fitted to block means (64 blocks across
+  the short side). An LED's field on a plane (inverse square, cosine, emission lobe, lens
+  vignetting) is this smooth; on the simulated rig (fingerps_driver.simulation) degree 4
+  follows it to 0.3 % at worst, texture and noise included, where degree 2 leaves 1 % and
+  degree 8 starts to fit the noise.
 - `Smoothing.LOCAL_LINEAR`: Gaussian-weighted local linear regression, i.e. a Gaussian
   filter of ``smoothing_sigma_px`` whose weights are renormalised and corrected for the
   local slope, so it has no bias at the image border (where a plain Gaussian filter with a

@@ -135,14 +135,15 @@ def sphere_edge_points(
     images: np.ndarray,
     *,
     mask: np.ndarray | None = None,
-    smoothing_sigma_px: float = 1.0,
+    smoothing_sigma_px: float = 0.5,
     search_half_width_px: float = 5.0,
 ) -> np.ndarray:
     """Sub-pixel points of the sphere's silhouette.
 
-    Without a mask, the sphere is segmented in the pixel-wise maximum over the images (its
-    weak diffuse component against a dark background): Otsu threshold, largest connected
-    component, holes filled. An ellipse fitted to that outline gives one search line per
+    Without a mask, the sphere (its weak diffuse component against a dark background) is
+    segmented in the pixel-wise maximum over the images: threshold by Otsu's method on the
+    pixel-wise median (free of the highlights; the maximum if there are fewer than three
+    images) clipped at its 99.5th percentile, largest connected component, holes filled. An ellipse fitted to that outline gives one search line per
     pixel of perimeter, through the ellipse's centre; along each line the image (smoothed
     by a Gaussian of ``smoothing_sigma_px``) is sampled every 0.25 px with cubic
     interpolation and the edge is put at the peak of the outward intensity drop, refined
@@ -153,6 +154,12 @@ def sphere_edge_points(
     Search lines that leave the image, or whose edge is weak (below a quarter of the
     median edge strength), give no point.
 
+    Bias: the diffuse shading of a sphere lit from near the camera falls steeply towards the
+    limb (as the root of the distance to it), which pulls the gradient peak inwards. On the
+    simulated rig (fingerps_driver.simulation) the points lie 0.10 px inside the true
+    silhouette on average with the default smoothing (0.19 px with sigma = 1 px), which
+    puts the fitted centre ~0.08 % too far; with a mask there is no such bias.
+
     Parameters
     ----------
     images : (K, H, W) or (H, W) array, any real dtype
@@ -160,7 +167,7 @@ def sphere_edge_points(
     mask : (H, W) bool array, optional
         The sphere's pixels; if given, its boundary is used instead of segmenting.
     smoothing_sigma_px : float
-        Gaussian smoothing before the gradient, pixels.
+        Gaussian smoothing before the gradient, pixels; raise it for noisy images.
     search_half_width_px : float
         Half length of each search line around the ellipse, pixels.
 
@@ -187,13 +194,25 @@ def sphere_edge_points(
         field = mask.astype(bool).astype(np.float64)
     else:
         field = stack.max(axis=0)
-        region = _segment_bright(field)
+        # The threshold comes from the median over the LEDs (each highlight shows in one
+        # image only, so it is gone there) when there are enough images.
+        level = _otsu_level(np.median(stack, axis=0) if len(stack) >= 3 else field)
+        region = None if level is None else _largest_component(
+            cv2.morphologyEx((field > level).astype(np.uint8), cv2.MORPH_OPEN,
+                             np.ones((3, 3), np.uint8)).astype(bool)
+        )
     if region is None:
         return np.zeros((0, 2))
     contours, _ = cv2.findContours(
         region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
     )
     outline = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+    # Where the sphere is cut by the image border the outline runs along the border.
+    on_border = (
+        (outline[:, 0] <= 0) | (outline[:, 0] >= w - 1)
+        | (outline[:, 1] <= 0) | (outline[:, 1] >= h - 1)
+    )
+    outline = outline[~on_border]
     if len(outline) < 5:
         return np.zeros((0, 2))
     (ecx, ecy), (ea, eb), angle_deg = cv2.fitEllipse(outline.astype(np.float32))
@@ -381,7 +400,7 @@ def _highlight(
     centroid = _weighted_centroid(np.where(blob, excess, 0.0))
     # Stability: the centroid at other thresholds, within the component holding this blob.
     spread = 0.0
-    seed = tuple(np.argwhere(blob)[0])
+    seed = np.unravel_index(np.argmax(np.where(blob, values, -np.inf)), values.shape)
     for t in thresholds:
         if t == main:
             continue
@@ -533,7 +552,7 @@ def calibrate_lights(
         )
         return result(center, fit.rms_residual_px)
     expected = np.pi * 2 * fit.silhouette_radius_px
-    if len(raw_edges) < 0.6 * expected:
+    if len(raw_edges) < 0.5 * expected:
         problems.append(
             f"sphere edge found on only {len(raw_edges)} of ~{expected:.0f} outline points; "
             "is the sphere cut by the image border or occluded by its holder?"
@@ -707,16 +726,15 @@ def _largest_component(binary: np.ndarray) -> np.ndarray | None:
     return ndimage.binary_fill_holes(labels == best)
 
 
-def _segment_bright(field: np.ndarray) -> np.ndarray | None:
-    """Largest bright region of ``field`` (Otsu on the image clipped at its 99th percentile)."""
-    low, high = np.percentile(field, [1.0, 99.0])
+def _otsu_level(field: np.ndarray) -> float | None:
+    """Otsu threshold of ``field`` (clipped at its 99.5th percentile), in its own units."""
+    low, high = np.percentile(field, [1.0, 99.5])
     if not high > low:
         return None
     scaled = np.clip((field - low) / (high - low), 0.0, 1.0)
     gray = cv2.GaussianBlur((scaled * 255).astype(np.uint8), (5, 5), 0)
-    _, binary = cv2.threshold(gray, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    return _largest_component(binary.astype(bool))
+    level, _ = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return float(low + (level + 0.5) / 255.0 * (high - low))
 
 
 def _undistort(uv: np.ndarray, k: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:

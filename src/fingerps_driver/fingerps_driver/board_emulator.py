@@ -86,6 +86,8 @@ class BoardEmulator:
         symlink there is replaced; any other existing file is an error.
     firmware : str
         Firmware token reported by ``INFO``.
+    history_limit : int
+        Switches kept in ``history`` (the oldest are forgotten), so a long run stays bounded.
     """
 
     def __init__(
@@ -96,11 +98,14 @@ class BoardEmulator:
         slow_reply_s: float = 0.075,
         link_path: str | None = None,
         firmware: str = FIRMWARE,
+        history_limit: int = 10_000,
     ) -> None:
         if not 1 <= led_count <= MAX_LEDS:
             raise ValueError(f"led_count {led_count} outside 1..{MAX_LEDS}")
         if reply_delay_s < 0 or slow_reply_s < 0:
             raise ValueError("reply_delay_s and slow_reply_s must be >= 0")
+        if history_limit < 1:
+            raise ValueError(f"history_limit must be >= 1, got {history_limit}")
         Reply(0, (firmware,))  # raises ValueError if the token is not valid on the wire
         self._led_count = led_count
         self._reply_delay_s = reply_delay_s
@@ -110,7 +115,9 @@ class BoardEmulator:
         self._lock = threading.Lock()
         self._mask = 0
         self._levels = [MAX_LEVEL] * led_count
-        self._history: list[tuple[float, int]] = []
+        self._history: collections.deque[tuple[float, int]] = collections.deque(
+            maxlen=history_limit
+        )
         self._faults: collections.deque[Fault] = collections.deque()
         self._requests = 0
         self._started = False
@@ -212,7 +219,7 @@ class BoardEmulator:
 
     @property
     def history(self) -> list[tuple[float, int]]:
-        """(time.monotonic(), mask) of every switch (each LEDS/OFF applied, power loss)."""
+        """(time.monotonic(), mask) of the last switches (each LEDS/OFF applied, power loss)."""
         with self._lock:
             return list(self._history)
 

@@ -34,7 +34,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
 from fingerps_recon import qos, topics
-from fingerps_recon.angular_error import summarize_angular_error
+from fingerps_recon.angular_error import angular_error_deg, summarize_angular_error
 from fingerps_recon.frames import optical_to_ps
 from fingerps_recon.image_conversion import image_to_array
 from fingerps_recon.normal_map import normal_map_rgb
@@ -246,7 +246,8 @@ def run(args: argparse.Namespace) -> int:
     for stamp, normals_optical in sorted(r.normals.items()):
         est = optical_to_ps(normals_optical)
         both = truth.mask & np.any(est != 0, axis=2)
-        errors.append(summarize_angular_error(est, truth.normals_ps, mask=both))
+        errors.append(summarize_angular_error(angular_error_deg(est, truth.normals_ps),
+                                             mask=both))
     last = max(r.clouds)
     est = optical_to_ps(r.normals[last])
     mask = np.any(est != 0, axis=2)

@@ -209,15 +209,17 @@ class DriverNode(Node):
 
     def _on_capture(self, request: CaptureBurst.Request,
                     response: CaptureBurst.Response) -> CaptureBurst.Response:
-        result, burst = self.capture(with_dark=request.with_dark_frame)
+        result, burst = self.capture(with_dark=request.with_dark_frame,
+                                     publish=not request.response_only)
         response.success = result.ok
         response.message = "ok" if result.ok else result.reason
         if burst is not None:
             response.burst = burst
         return response
 
-    def capture(self, *, with_dark: bool) -> tuple[BurstResult, Burst | None]:
-        """Capture one burst and publish it; return the result and the message if whole."""
+    def capture(self, *, with_dark: bool, publish: bool = True
+                ) -> tuple[BurstResult, Burst | None]:
+        """Capture one burst, publish it if asked; return the result and the message if whole."""
         with self._lock:
             if self._closed or self._board is None or self._camera is None:
                 raise FingerpsDriverError("the driver is shutting down")
@@ -237,7 +239,7 @@ class DriverNode(Node):
             return result, None
         self._counters.ok += 1
         self._counters.last_burst_ms = result.duration_s * 1e3
-        return result, self._publish(result, count)
+        return result, self._publish(result, count, publish=publish)
 
     def _camera_info(self, header: Header) -> CameraInfo:
         k = self._rig.camera_matrix
@@ -258,19 +260,20 @@ class DriverNode(Node):
             exposure_time=frame.exposure_s, led_intensity=frame.level,
             image=array_to_image(frame.image, encoding=self._camera.encoding, header=header))
 
-    def _publish(self, result: BurstResult, count: int) -> Burst:
+    def _publish(self, result: BurstResult, count: int, *, publish: bool) -> Burst:
         tagged = [self._tagged(f, result.burst_id, count) for f in result.frames]
-        for msg in tagged:
+        for msg in tagged if publish else ():
             self._pub_frames.publish(msg)
             self._pub_image.publish(msg.image)
         last = tagged[-1].header
         info = self._camera_info(last)
-        self._pub_info.publish(info)
         burst = Burst(header=last, burst_id=result.burst_id, frames=tagged, camera_info=info)
         if result.dark is not None:
             burst.has_dark_frame = True
             burst.dark_frame = self._tagged(result.dark, result.burst_id, count)
-        self._pub_burst.publish(burst)
+        if publish:
+            self._pub_info.publish(info)
+            self._pub_burst.publish(burst)
         return burst
 
     # ------------------------------------------------------------------ diagnostics

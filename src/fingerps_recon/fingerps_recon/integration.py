@@ -116,7 +116,8 @@ def integrate_normals(
     if n_pix == 0:
         return height
 
-    du, dv = _slopes(n, m, pixel_size_m=float(pixel_size_m), min_nz=float(min_nz))
+    # Slopes per pixel (dimensionless); the metric scale is applied at the end.
+    du, dv = _slopes(n, m, min_nz=float(min_nz))
 
     # Number the mask pixels 0..N-1 in raster order.
     ids = np.full(m.shape, -1, dtype=np.int64)
@@ -171,14 +172,14 @@ def integrate_normals(
     # Zero mean per component (the offset of each is not observable).
     means = np.bincount(comp_of_pixel, weights=solution, minlength=n_comp) / np.maximum(sizes, 1)
     solution -= means[comp_of_pixel]
-    height[m] = solution.astype(np.float32)
+    height[m] = (solution * pixel_size_m).astype(np.float32)
     return height
 
 
 def _slopes(
-    normals: np.ndarray, mask: np.ndarray, *, pixel_size_m: float, min_nz: float
+    normals: np.ndarray, mask: np.ndarray, *, min_nz: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Height steps per column (du) and per row (dv), in metres, from PS-frame normals."""
+    """Height steps per column (du) and per row (dv), in pixels, from PS-frame normals."""
     n = normals.astype(np.float64)
     norm = np.linalg.norm(n, axis=2)
     usable = mask & np.isfinite(norm) & (norm > 0)
@@ -189,7 +190,7 @@ def _slopes(
     nz = np.maximum(nz, min_nz)
     p = -nx / nz  # dh/dx, x to the right = +column
     q = -ny / nz  # dh/dy, y up = -row
-    return p * pixel_size_m, -q * pixel_size_m
+    return p, -q
 
 
 def _solve_component(

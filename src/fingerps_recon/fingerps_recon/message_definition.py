@@ -62,7 +62,7 @@ class MessageDefinitionError(FingerpsReconError):
     """A message type's definition could not be found or assembled."""
 
 
-class _DefinitionNotFound(Exception):
+class _DefinitionNotFoundError(Exception):
     """Internal: no file of the asked format; rosbag2 then falls back to IDL."""
 
 
@@ -119,7 +119,7 @@ def _load_text(type_name: str, extension: str) -> tuple[str, str]:
     try:
         data = path.read_bytes()
     except OSError as err:
-        raise _DefinitionNotFound(type_name) from err
+        raise _DefinitionNotFoundError(type_name) from err
     return package, data.decode("utf-8")
 
 
@@ -188,11 +188,11 @@ def load_message_definition(type_name: str) -> MessageDefinition:
     split_type_name(type_name)
     try:
         return MessageDefinition(type_name, ENCODING_MSG, _full_text(type_name, ENCODING_MSG))
-    except _DefinitionNotFound:
+    except _DefinitionNotFoundError:
         pass
     try:
         return MessageDefinition(type_name, ENCODING_IDL, _full_text(type_name, ENCODING_IDL))
-    except _DefinitionNotFound as err:
+    except _DefinitionNotFoundError as err:
         raise MessageDefinitionError(
             f"no .msg or .idl definition of {err.args[0]!r} (needed for {type_name!r}) in its "
             "package's share/<pkg>/msg directory; is the package built with rosidl?") from None

@@ -116,8 +116,8 @@ class RigConfig:
     ridge_height_m: float = 50e-6
     ridge_period_m: float = 0.5e-3
     ridge_core_offset_m: tuple[float, float] = (0.6e-3, -1.0e-3)
-    ridge_ellipticity: float = 1.2
-    ridge_warp_m: float = 0.35e-3
+    ridge_ellipticity: float = 1.1
+    ridge_warp_m: float = 0.25e-3
     ridge_spiral: bool = True
     albedo_mean: float = 0.5
     albedo_variation: float = 0.06
@@ -190,9 +190,10 @@ class RigConfig:
             )
         if self.finger_apex_optical_m[2] <= self.finger_radius_m:
             fail("the finger apex must be in front of the camera by more than finger_radius_m")
-        sphere_z = self.sphere_center_optical_m[2]
-        if np.linalg.norm(self.sphere_center_optical_m) <= self.sphere_radius_m or sphere_z <= 0:
-            fail("the sphere must be in front of the camera and not contain it")
+        if self.sphere_center_optical_m[2] <= self.sphere_radius_m:
+            fail("the sphere must lie wholly in front of the camera: centre z > sphere_radius_m")
+        if self.principal_point_px is not None and len(self.principal_point_px) != 2:
+            fail("principal_point_px must be (cx, cy) or None")
         count = len(self.led_angles_deg)
         per_led = (
             "led_ring_radii_m", "led_heights_m", "led_powers", "led_exponents",
@@ -255,7 +256,8 @@ class SimulatedRig:
     """Renders the rig's scenes under any set of lit LEDs (see the module docstring).
 
     Construction is cheap; each (scene, LED) image is computed on first use (the finger's
-    geometry, ~0.6 s, once) or all at once by ``warm_up``. Thread-safe.
+    geometry ~0.6 s once, then ~0.1 s per LED; sphere ~0.06 s and target ~0.05 s per LED)
+    or all at once by ``warm_up``. A frame from the cache costs ~2-4 ms. Thread-safe.
 
     Attributes
     ----------
@@ -340,6 +342,16 @@ class SimulatedRig:
         """(K, 3) float64 unit "distant-light" directions, PS frame, apex -> LED k."""
         apex = np.asarray(self.config.finger_apex_optical_m, dtype=np.float64)
         return optical_to_ps(self.leds.directions_optical(apex, slice(None)))
+
+    def light_intensities(self) -> np.ndarray:
+        """(K,) float64 true relative LED intensities at the apex (lighting field E_k there).
+
+        Times ``exposure_gain``: the finger's Lambertian term at the apex under LED k is
+        ``light_intensities()[k] * rho * cos(incidence)`` in fractions of full scale.
+        """
+        apex = np.asarray(self.config.finger_apex_optical_m, dtype=np.float64)
+        field = np.array([self.leds.irradiance(apex, k) for k in range(self.led_count)])
+        return self.config.exposure_gain * field
 
     def finger_truth(self) -> FingerTruth:
         """Ground truth of the (unshifted) finger scene; fresh arrays on every call."""

@@ -1,0 +1,170 @@
+"""Tests of fingerps_recon.integration on analytic surfaces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.integration import depth_to_points, height_to_distance, integrate_normals
+
+PIXEL = 2e-5  # metres per pixel
+
+
+def _normals_of(height_fn, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Analytic normals (PS frame) and heights of h(x, y), x = u * PIXEL, y = -v * PIXEL."""
+    v, u = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    x, y = u * PIXEL, -v * PIXEL
+    h, hx, hy = height_fn(x, y)
+    n = np.stack([-hx, -hy, np.ones_like(h)], axis=-1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True), h
+
+
+def _zero_mean(h: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    return np.where(mask, h - h[mask].mean(), np.nan)
+
+
+def test_tilted_plane_is_exact_and_axes_are_right() -> None:
+    a, b = 0.3, -0.2  # dh/dx, dh/dy with y up
+    normals, h = _normals_of(lambda x, y: (a * x + b * y, a + 0 * x, b + 0 * x), (50, 70))
+    mask = np.ones(h.shape, dtype=bool)
+    mask[:5, :5] = False
+    got = integrate_normals(normals, mask=mask, pixel_size_m=PIXEL)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got[mask], _zero_mean(h, mask)[mask], atol=1e-9)
+    assert np.all(np.isnan(got[~mask]))
+    # Height grows to the right (a > 0) and towards the top of the image (b < 0: downwards).
+    assert got[25, 60] > got[25, 10]
+    assert got[45, 35] > got[10, 35]
+
+
+def test_sphere_cap_with_mask() -> None:
+    shape = (121, 141)
+    r_m = 60 * PIXEL
+    c = np.array([70 * PIXEL, -60 * PIXEL])
+
+    def sphere(x, y):
+        d2 = (x - c[0]) ** 2 + (y - c[1]) ** 2
+        z = np.sqrt(np.clip(r_m**2 - d2, 1e-30, None))
+        return z, -(x - c[0]) / z, -(y - c[1]) / z
+
+    normals, h = _normals_of(sphere, shape)
+    v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
+    mask = np.hypot(u - 70, v - 60) < 0.8 * 60
+    got = integrate_normals(normals, mask=mask, pixel_size_m=PIXEL)
+    truth = _zero_mean(h, mask)
+    span = np.ptp(truth[mask])
+    err = np.abs(got[mask] - truth[mask])
+    assert err.max() < 0.01 * span
+    assert np.sqrt(np.mean(err**2)) < 0.002 * span
+    assert got[60, 70] > 0 > got[60, 30]  # a bump: centre up, rim down
+    assert abs(float(np.nanmean(got))) < 1e-9
+
+
+def test_gaussian_bump_with_hole_and_second_component() -> None:
+    shape = (150, 200)
+    s = 25 * PIXEL
+
+    def bump(x, y):
+        e = 3e-4 * np.exp(-((x - 100 * PIXEL) ** 2 + (y + 75 * PIXEL) ** 2) / (2 * s**2))
+        return e, -e * (x - 100 * PIXEL) / s**2, -e * (y + 75 * PIXEL) / s**2
+
+    normals, h = _normals_of(bump, shape)
+    v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
+    big = (np.abs(u - 100) < 80) & (np.abs(v - 75) < 60) & (np.hypot(u - 130, v - 75) > 6)
+    small = (u > 185) & (v > 130)  # a separate 14 x 19 patch, solved on its own
+    mask = big | small
+    got = integrate_normals(normals, mask=mask, pixel_size_m=PIXEL)
+    for part in (big, small):
+        truth = h[part] - h[part].mean()
+        assert abs(float(got[part].mean())) < 1e-10  # zero mean per component
+        assert np.abs(got[part] - truth).max() < 0.01 * 3e-4
+    assert got[75, 100] > 2e-4  # the peak, relative to the component's mean
+
+
+def test_direct_fallback_matches_the_iterative_solve() -> None:
+    normals, h = _normals_of(
+        lambda x, y: (
+            np.sin(x / (9 * PIXEL)) * 1e-4,
+            np.cos(x / (9 * PIXEL)) / (9 * PIXEL) * 1e-4,
+            0 * x,
+        ),
+        (100, 120),
+    )
+    v, u = np.mgrid[0:100, 0:120]
+    mask = np.hypot(u - 60, v - 50) < 45
+    iterative = integrate_normals(normals, mask=mask, pixel_size_m=PIXEL)
+    direct = integrate_normals(normals, mask=mask, pixel_size_m=PIXEL, max_iter=1)
+    np.testing.assert_allclose(iterative[mask], direct[mask], atol=1e-5 * 2e-4)
+    comb = ((u % 4) == 0) | (v < 3)  # a comb: slow for CG, cheap for the direct solver
+    got = integrate_normals(normals, mask=comb, pixel_size_m=PIXEL)
+    truth = _zero_mean(h, comb)
+    assert np.abs(got[comb] - truth[comb]).max() < 0.02 * 2e-4
+
+
+def test_degenerate_masks_and_bad_normals() -> None:
+    normals = np.zeros((20, 30, 3))
+    normals[..., 2] = 1.0
+    normals[5, 5] = 0.0  # no normal: zero slope, not NaN
+    normals[6, 6] = np.nan
+    mask = np.zeros((20, 30), dtype=bool)
+    assert np.all(np.isnan(integrate_normals(normals, mask=mask, pixel_size_m=PIXEL)))
+    mask[2:15, 2:20] = True
+    mask[18, 25] = True  # a single pixel
+    got = integrate_normals(normals, mask=mask, pixel_size_m=PIXEL)
+    assert np.all(np.isfinite(got[mask]))
+    np.testing.assert_allclose(got[mask], 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("normals", "mask", "kwargs"),
+    [
+        (np.zeros((4, 5)), np.ones((4, 5), bool), {}),
+        (np.zeros((4, 5, 3)), np.ones((4, 6), bool), {}),
+        (np.zeros((4, 5, 3)), np.ones((4, 5)), {}),
+        (np.zeros((4, 5, 3)), np.ones((4, 5), bool), {"pixel_size_m": 0.0}),
+        (np.zeros((4, 5, 3)), np.ones((4, 5), bool), {"min_nz": 0.0}),
+    ],
+)
+def test_integrate_bad_inputs_raise(normals: np.ndarray, mask: np.ndarray, kwargs: dict) -> None:
+    with pytest.raises(FingerpsReconError):
+        integrate_normals(normals, mask=mask, **{"pixel_size_m": PIXEL, **kwargs})
+
+
+def test_height_to_distance() -> None:
+    h = np.array([[0.001, np.nan], [-0.002, 0.0]])
+    d = height_to_distance(h, working_distance_m=0.05)
+    assert d.dtype == np.float32
+    np.testing.assert_allclose(d, [[0.049, np.nan], [0.052, 0.05]], rtol=1e-6)
+    with pytest.raises(FingerpsReconError):
+        height_to_distance(h, working_distance_m=-1.0)
+
+
+def test_depth_to_points_back_projects_and_indexes() -> None:
+    k = np.array([[800.0, 0.0, 30.0], [0.0, 820.0, 20.0], [0.0, 0.0, 1.0]])
+    depth = np.full((40, 60), 0.05)
+    depth[3, 4] = np.nan
+    depth[5, 6] = -1.0
+    mask = np.zeros((40, 60), dtype=bool)
+    mask[:10, :10] = True
+    mask[30, 50] = True
+    points, index = depth_to_points(depth, mask, camera_matrix=k)
+    assert points.dtype == np.float32 and points.shape == (100 - 2 + 1, 3)
+    assert index.dtype == np.int64 and index.shape == (points.shape[0],)
+    v, u = np.divmod(index, 60)
+    assert np.all(mask[v, u])
+    # Re-projection gives the pixel back.
+    np.testing.assert_allclose(k[0, 0] * points[:, 0] / points[:, 2] + k[0, 2], u, atol=1e-3)
+    np.testing.assert_allclose(k[1, 1] * points[:, 1] / points[:, 2] + k[1, 2], v, atol=1e-3)
+    np.testing.assert_allclose(points[:, 2], 0.05, rtol=1e-6)
+    # The pixel at (u, v) = (50, 30) is right of and below the principal point: x > 0, y > 0.
+    p = points[index == 30 * 60 + 50][0]
+    assert p[0] > 0 and p[1] > 0
+    intensity = np.arange(40 * 60, dtype=np.float32).reshape(40, 60)
+    np.testing.assert_array_equal(intensity.ravel()[index], v * 60 + u)
+
+
+def test_depth_to_points_bad_inputs_raise() -> None:
+    with pytest.raises(FingerpsReconError, match="camera_matrix"):
+        depth_to_points(np.ones((4, 5)), np.ones((4, 5), bool), camera_matrix=np.eye(2))
+    with pytest.raises(FingerpsReconError, match="mask"):
+        depth_to_points(np.ones((4, 5)), np.ones((4, 6), bool), camera_matrix=np.eye(3))
