@@ -17,7 +17,10 @@ setup(
     zip_safe=True,
     maintainer="fingerps developers",
     maintainer_email="dev@fingerps.invalid",
-    description="fingerps calibration: light directions from a shiny sphere, flat-field maps from a white target, camera intrinsics.",
+    description=(
+        "fingerps calibration: light directions from a shiny sphere, flat-field "
+        "maps from a white target, camera intrinsics."
+    ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

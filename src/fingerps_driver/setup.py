@@ -17,7 +17,10 @@ setup(
     zip_safe=True,
     maintainer="fingerps developers",
     maintainer_email="dev@fingerps.invalid",
-    description="fingerps driver: switches the LED board over serial, captures and tags bursts; the simulated rig and the board emulator.",
+    description=(
+        "fingerps driver: switches the LED board over serial, captures and tags "
+        "bursts; the simulated rig and the board emulator."
+    ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -17,7 +17,11 @@ setup(
     zip_safe=True,
     maintainer="fingerps developers",
     maintainer_email="dev@fingerps.invalid",
-    description="fingerps reconstruction: photometric stereo under a skin reflectance model, ridge enhancement, depth and point clouds; session recording to MCAP.",
+    description=(
+        "fingerps reconstruction: photometric stereo under a skin reflectance "
+        "model, ridge enhancement, depth and point clouds; session recording to "
+        "MCAP."
+    ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

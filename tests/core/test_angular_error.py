@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from fingerps_recon.angular_error import (
     AngularErrorSummary,
     angular_error_deg,

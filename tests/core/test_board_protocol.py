@@ -1,6 +1,7 @@
 """LED board wire protocol: encoding, decoding, checksum, framing (no I/O)."""
 
 import pytest
+
 from fingerps_driver.board_protocol import (
     MAX_LINE_BYTES,
     REPLY_SIGIL,

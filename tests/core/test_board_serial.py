@@ -9,6 +9,7 @@ import threading
 import time
 
 import pytest
+
 from fingerps_driver.board_emulator import BoardEmulator, BoardEmulatorError, Fault
 from fingerps_driver.board_protocol import ErrorCode
 from fingerps_driver.led_board import (

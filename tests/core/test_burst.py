@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 import pytest
+
 from fingerps_driver.board_emulator import BoardEmulator, Fault
 from fingerps_driver.burst import DARK_LED, BurstResult, capture_burst
 from fingerps_driver.camera import Camera, CameraError, SimulatedCamera

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from fingerps_calib.camera_info_yaml import CameraIntrinsics, load_camera_info, save_camera_info
 from fingerps_calib.errors import FingerpsCalibError
 

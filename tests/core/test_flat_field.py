@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.flat_field import apply_flat_field
 

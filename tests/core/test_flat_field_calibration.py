@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
+
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import MIN_PORTION, Smoothing, flat_field_maps
-from scipy import ndimage
 
 H, W = 180, 240
 

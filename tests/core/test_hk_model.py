@@ -7,6 +7,8 @@ import warnings
 
 import numpy as np
 import pytest
+from scipy import integrate
+
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.hk_model import (
     FINGER,
@@ -16,7 +18,6 @@ from fingerps_recon.hk_model import (
     henyey_greenstein,
     hk_reflectance,
 )
-from scipy import integrate
 
 Z = np.array([0.0, 0.0, 1.0])
 

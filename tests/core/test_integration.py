@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.integration import depth_to_points, height_to_distance, integrate_normals
 

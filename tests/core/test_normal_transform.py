@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.normal_transform import enhance_ridges

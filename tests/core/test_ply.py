@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.ply import read_ply, write_ply
 

@@ -7,11 +7,12 @@ import time
 import cv2
 import numpy as np
 import pytest
+from scipy.optimize import minimize
+
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
 from fingerps_recon.frames import optical_to_ps
 from fingerps_recon.lambertian import lambertian_shading
-from scipy.optimize import minimize
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,10 @@ surface points, whose mirror directions are known in closed form (Eq. 10).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
+
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.sphere_calibration import (
     calibrate_lights,
@@ -216,6 +218,29 @@ def test_calibrate_lights_recovers_directions():
     assert result.edge_rms_px < 0.2
     assert np.all(result.residuals_px < 0.3)
     np.testing.assert_allclose(result.directions_ps[:, 1:], -result.directions_optical[:, 1:])
+
+
+def test_calibrate_lights_undistorts_points():
+    rng = np.random.default_rng(6)
+    images, uv, truth = _sphere_images(_facing_normals(4), rng)
+    distortion = np.array([-0.25, 0.1, 0.001, -0.002, 0.0])
+    # Distorted image: the pixel at distorted (u, v) shows the ideal image at its
+    # undistorted position.
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float32)
+    ideal = cv2.undistortPoints(np.stack([uu, vv], -1).reshape(-1, 1, 2), K, distortion, P=K)
+    map_u, map_v = ideal.reshape(H, W, 2).transpose(2, 0, 1)
+    distorted = np.stack([
+        cv2.remap(image, map_u, map_v, cv2.INTER_LINEAR, borderValue=4) for image in images
+    ])
+    result = calibrate_lights(distorted, camera_matrix=K, radius_m=RADIUS,
+                              distortion=distortion)
+    assert result.ok, result.problems
+    np.testing.assert_allclose(result.highlights_uv, uv, atol=0.15)
+    angles = np.degrees(np.arccos(np.clip(np.sum(result.directions_optical * truth, 1), -1, 1)))
+    assert angles.max() < 0.4, angles
+    assert np.linalg.norm(result.sphere_center_optical_m - CENTER) < 0.15e-3
+    ignored = calibrate_lights(distorted, camera_matrix=K, radius_m=RADIUS)
+    assert np.linalg.norm(ignored.sphere_center_optical_m - CENTER) > 0.5e-3
 
 
 def test_calibrate_lights_reports_failures_instead_of_bad_results():

@@ -6,18 +6,18 @@ light); for the flat field the noiseless white-target image divided by the targe
 map (the field's shape without the paper texture).
 
 Accuracy measured with the default RigConfig (8 bit, f = 3000 px, 4 mm ball at 94 mm,
-sphere ~128 px in radius), seeds as below: direction errors 0.01-0.12 deg, centre error
-0.08 mm (almost all along the line of sight), edge rms 0.10 px; flat-field portions within
-0.2 % of the truth.
+sphere ~128 px in radius), seeds as below: direction errors 0.015-0.115 deg, centre error
+0.09 mm (almost all along the line of sight), edge rms 0.10 px; flat-field portions within
+0.26 % of the truth.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_calib.sphere_calibration import calibrate_lights, sphere_edge_points
-
 from fingerps_driver import simulation
 
 
@@ -67,6 +67,26 @@ def test_light_directions_from_the_sphere(rig, sphere_images):
     # 40 mm off axis at 90 mm, the sphere's directions differ from them by degrees.
     apex_ps = rig.light_directions_ps()
     assert np.all(_angle_deg(result.directions_ps, apex_ps) > 0.5)
+
+
+def test_sphere_cut_by_the_image_border(rig):
+    # Centre 300 px left of the principal point: a third of the ball is outside the image.
+    cut = simulation.SimulatedRig(
+        simulation.RigConfig(sphere_center_optical_m=(-9.0e-3, 0.0, 0.094))
+    )
+    images = np.stack([
+        cut.render(simulation.Scene.SPHERE, [k], rng=np.random.default_rng(300 + k))
+        for k in range(cut.led_count)
+    ])
+    assert np.any(images[:, :, 0] > 5)  # really cut
+    result = calibrate_lights(images, camera_matrix=cut.camera_matrix,
+                              radius_m=cut.config.sphere_radius_m)
+    assert result.ok, result.problems
+    center = np.asarray(cut.config.sphere_center_optical_m)
+    assert 1e3 * np.linalg.norm(result.sphere_center_optical_m - center) < 0.2
+    specular = np.stack([cut.sphere.specular_point(p) for p in cut.led_positions_optical])
+    errors_deg = _angle_deg(result.directions_optical, cut.led_positions_optical - specular)
+    assert np.all(errors_deg < 0.3), errors_deg
 
 
 def test_sphere_edge_points_hug_the_true_silhouette(rig, sphere_images):

@@ -143,16 +143,18 @@ def sphere_edge_points(
     Without a mask, the sphere (its weak diffuse component against a dark background) is
     segmented in the pixel-wise maximum over the images: threshold by Otsu's method on the
     pixel-wise median (free of the highlights; the maximum if there are fewer than three
-    images) clipped at its 99.5th percentile, largest connected component, holes filled. An ellipse fitted to that outline gives one search line per
-    pixel of perimeter, through the ellipse's centre; along each line the image (smoothed
-    by a Gaussian of ``smoothing_sigma_px``) is sampled every 0.25 px with cubic
-    interpolation and the edge is put at the peak of the outward intensity drop, refined
-    by a parabola through the three samples around it. With ``mask`` the same refinement
-    runs on the mask's boundary (the 0/1 mask, smoothed), so the points lie half-way
-    between inside and outside pixels.
+    images) clipped at its 99.5th percentile, largest connected component, holes filled.
+    An ellipse fitted to that outline (less any part along the image border) gives one
+    search line per pixel of perimeter, through the ellipse's centre; along each line the
+    pixel-wise maximum (smoothed by a Gaussian of ``smoothing_sigma_px``) is sampled every
+    0.25 px with cubic interpolation and the edge is put at the peak of the outward
+    intensity drop, refined by a parabola through the three samples around it. With
+    ``mask`` the same refinement runs on the mask's boundary (the 0/1 mask, smoothed), so
+    the points lie half-way between inside and outside pixels.
 
     Search lines that leave the image, or whose edge is weak (below a quarter of the
-    median edge strength), give no point.
+    median edge strength), give no point; so a sphere cut by the image border still gives
+    the points of its visible outline.
 
     Bias: the diffuse shading of a sphere lit from near the camera falls steeply towards the
     limb (as the root of the distance to it), which pulls the gradient peak inwards. On the

@@ -70,6 +70,7 @@ class Received:
     normal_map: dict[int, np.ndarray] = field(default_factory=dict)
     clouds: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     latency_ms: dict[int, float] = field(default_factory=dict)
+    arrival: dict[int, float] = field(default_factory=dict)   # time.monotonic() of receipt
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
@@ -104,9 +105,10 @@ class DemoClient(Node):
         stamp = _stamp_ns(msg)
         with self.received.lock:
             self.received.latency_ms[stamp] = (time.time_ns() - stamp) / 1e6
+            self.received.arrival[stamp] = time.monotonic()
             self.received.clouds[stamp] = cloud_to_points(msg)
 
-    def call(self, client, request, *, timeout: float, what: str):  # noqa: ANN001, ANN201
+    def call(self, client, request, *, timeout: float, what: str):
         """Call a service and return its response, or raise DemoError naming ``what``."""
         if not client.wait_for_service(timeout_sec=timeout):
             raise DemoError(f"{what}: service {client.srv_name} not available after "
@@ -130,6 +132,20 @@ class DemoClient(Node):
             raise DemoError(f"placing the {scene}: {response.results[0].reason}")
 
 
+def wait_for_outputs(received: Received, expected: int, *, quiet_s: float) -> None:
+    """Wait until ``expected`` bursts are reconstructed, or none arrived for ``quiet_s``."""
+    last_count, last_change = -1, time.monotonic()
+    while time.monotonic() - last_change < quiet_s:
+        with received.lock:
+            count = min(len(received.clouds), len(received.normals), len(received.depth),
+                        len(received.normal_map))
+        if count >= expected:
+            return
+        if count != last_count:
+            last_count, last_change = count, time.monotonic()
+        time.sleep(0.05)
+
+
 def start_graph(log_dir: Path, bags_dir: Path, extra_env: dict[str, str]) -> list[
         subprocess.Popen]:
     """Start the graph's nodes as separate processes, logging to ``log_dir``."""
@@ -139,7 +155,7 @@ def start_graph(log_dir: Path, bags_dir: Path, extra_env: dict[str, str]) -> lis
         args = [executable(package, name)]
         if name == "recorder_node":
             args += ["--ros-args", "-p", f"bags_dir:={bags_dir}"]
-        log = open(log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed by the process end
+        log = open(log_dir / f"{name}.log", "w")
         processes.append(subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, env=env))
         log.close()
     return processes
@@ -224,15 +240,9 @@ def run(args: argparse.Namespace) -> int:
             if not response.success:
                 raise DemoError(f"burst capture failed: {response.message}")
             capture_ms.append((time.monotonic() - t0) * 1e3)
-        deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline:
-            with node.received.lock:
-                have = len(node.received.clouds)
-                complete = have >= args.bursts and len(node.received.normals) >= args.bursts
-            if complete:
-                break
-            time.sleep(0.05)
-        t_last = time.monotonic()
+        wait_for_outputs(node.received, args.bursts, quiet_s=10.0)
+        with node.received.lock:
+            t_last = max(node.received.arrival.values(), default=time.monotonic())
     finally:
         codes = stop_graph(processes)
         executor.shutdown()
@@ -243,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
     if not r.clouds or not r.normals:
         raise DemoError(f"no reconstruction arrived; see {logs}/recon_node.log")
     errors = []
-    for stamp, normals_optical in sorted(r.normals.items()):
+    for _, normals_optical in sorted(r.normals.items()):
         est = optical_to_ps(normals_optical)
         both = truth.mask & np.any(est != 0, axis=2)
         errors.append(summarize_angular_error(angular_error_deg(est, truth.normals_ps),

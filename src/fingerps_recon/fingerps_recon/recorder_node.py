@@ -242,6 +242,8 @@ class RecorderNode(Node):
         self._write_errors = 0
         self._queue = _WriteQueue(int(self.get_parameter("queue_limit_mb").value) * 1024 * 1024)
         self._subscriptions_made: list[Any] = []
+        self._registered: set[str] = set()  # topics added to the bag (callback thread only)
+        self._unrecordable: set[str] = set()  # topics the bag refused (logged once)
         self._worker = threading.Thread(target=self._work, name="recorder_writer")
 
         self._bag.start()
@@ -330,8 +332,8 @@ class RecorderNode(Node):
         else:
             received = int(info.get("received_timestamp", 0)) or time.time_ns()
         source = int(info.get("source_timestamp", 0))
-        if not self._bag.has_topic(topic):
-            self._add_topic(topic)
+        if topic not in self._registered and not self._add_topic(topic):
+            return
         dropped = self._queue.put(_Pending(topic, bytes(data), received, source))
         self._received += 1
         if dropped:
@@ -342,8 +344,13 @@ class RecorderNode(Node):
         self.get_logger().info(f"recording: {self._received} messages received",
                                throttle_duration_sec=30.0)
 
-    def _add_topic(self, topic: str) -> None:
-        """Register a topic with the QoS its publishers offer (qos.py's if none is seen)."""
+    def _add_topic(self, topic: str) -> bool:
+        """Register a topic with the QoS its publishers offer (qos.py's if none is seen).
+
+        Returns whether the topic can be recorded.
+        """
+        if topic in self._unrecordable:
+            return False
         spec = self._record[topic]
         offered = [QosProfileFields.from_profile(info.qos_profile)
                    for info in self.get_publishers_info_by_topic(topic)]
@@ -352,7 +359,11 @@ class RecorderNode(Node):
         try:
             self._bag.add_topic(topic, spec.type_name, offered_qos_yaml=qos_profiles_yaml(offered))
         except SessionBagError as err:
-            self.get_logger().error(f"cannot record {topic}: {err}", throttle_duration_sec=5.0)
+            self._unrecordable.add(topic)
+            self.get_logger().error(f"not recording {topic}: {err}")
+            return False
+        self._registered.add(topic)
+        return True
 
     # ------------------------------------------------------------------ writer thread
     def _work(self) -> None:
@@ -385,7 +396,8 @@ class RecorderNode(Node):
         for subscription in self._subscriptions_made:
             self.destroy_subscription(subscription)
         self._queue.close()
-        self._worker.join()
+        if self._worker.ident is not None:  # started
+            self._worker.join()
         log = self.get_logger() if self.context.ok() else self._shutdown_logger
         try:
             summary = self._bag.finish()

@@ -136,6 +136,15 @@ class QosProfileFields:
     liveliness_lease_duration_ns: int = 0
     avoid_ros_namespace_conventions: bool = False
 
+    def __post_init__(self) -> None:
+        _policy_name(self.history, _HISTORY, "history")
+        _policy_name(self.reliability, _RELIABILITY, "reliability")
+        _policy_name(self.durability, _DURABILITY, "durability")
+        _policy_name(self.liveliness, _LIVELINESS, "liveliness")
+        if self.depth < 0 or min(self.deadline_ns, self.lifespan_ns,
+                                 self.liveliness_lease_duration_ns) < 0:
+            raise SessionBagError("QoS depth and durations must not be negative")
+
     @classmethod
     def from_profile(cls, profile: Any) -> QosProfileFields:
         """Copy an rclpy ``QoSProfile`` (or anything with its attribute names) into fields.

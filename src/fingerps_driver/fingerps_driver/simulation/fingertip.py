@@ -29,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from fingerps_recon.frames import optical_to_ps
 
 _WARP_WAVELENGTHS_M = (9.0e-3, 13.0e-3)

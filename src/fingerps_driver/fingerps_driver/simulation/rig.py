@@ -26,9 +26,6 @@ from enum import Enum
 
 import cv2
 import numpy as np
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.hk_model import FINGER, SkinParams, hk_reflectance
-from fingerps_recon.lambertian import lambertian_shading
 
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.simulation.camera import PinholeCamera
@@ -37,6 +34,9 @@ from fingerps_driver.simulation.led_field import LedRing
 from fingerps_driver.simulation.mirror_sphere import MirrorSphere, render_sphere
 from fingerps_driver.simulation.sensor import SensorModel
 from fingerps_driver.simulation.white_target import WhiteTarget, render_white_target
+from fingerps_recon.frames import optical_to_ps
+from fingerps_recon.hk_model import FINGER, SkinParams, hk_reflectance
+from fingerps_recon.lambertian import lambertian_shading
 
 
 class Scene(Enum):

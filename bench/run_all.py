@@ -1,0 +1,42 @@
+"""Run every fingerps benchmark, print their tables, write bench/results.json.
+
+results.json is one flat JSON object of name -> number; each benchmark adds its names.
+Usage (after ``make build``, with tools/ros_env.sh sourced): ``python bench/run_all.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_driver
+import bench_e2e
+import bench_recon
+
+BENCHMARKS = (bench_driver, bench_recon, bench_e2e)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default="bench/results.json")
+    args = parser.parse_args(argv)
+    results: dict[str, float] = {}
+    for bench in BENCHMARKS:
+        print(f"\n## {bench.__name__}: {bench.__doc__.splitlines()[0]}")
+        figures = bench.run()
+        width = max(len(k) for k in figures)
+        for name, value in figures.items():
+            print(f"  {name:<{width}}  {value:12.3f}")
+        results.update(figures)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
+    print(f"\nwrote {len(results)} figures to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
