@@ -43,9 +43,10 @@ class CalibNode(Node):
         p("capture_timeout", 5.0, descriptor(
             "Seconds to wait for the driver's burst when a request carries no images",
             min_value=0.1, max_value=60.0))
-        p("flat_field_smoothing", 20.0, descriptor(
-            "Gaussian smoothing of the white-target images, pixels", min_value=1.0,
-            max_value=200.0))
+        p("flat_field_degree", 4, descriptor(
+            "Degree of the smooth 2D polynomial fitted to each white-target image (so paper "
+            "texture and noise do not enter the flat-field maps)", min_value=1, max_value=10,
+            integer=True))
         p("camera_name", "fingerps_sim", descriptor("Camera name written into calibrations"))
 
         self._service_group = MutuallyExclusiveCallbackGroup()
@@ -71,17 +72,24 @@ class CalibNode(Node):
         self._camera_info = msg
 
     # ------------------------------------------------------------------ images
-    def _frames(self, given: list[TaggedFrame]) -> tuple[list[TaggedFrame], CameraInfo | None]:
-        """The request's frames, or a fresh burst from the driver; sorted by LED."""
+    def _frames(self, given: list[TaggedFrame], *, with_dark: bool
+                ) -> tuple[list[TaggedFrame], CameraInfo | None, np.ndarray | None]:
+        """The request's frames, or a fresh burst from the driver (with a dark frame if
+        asked); sorted by LED. Returns (frames, camera info, dark image or None)."""
         if given:
-            return sorted(given, key=lambda f: f.led_index), self._camera_info
+            lit = [f for f in given if f.led_index != TaggedFrame.LED_DARK]
+            darks = [image_to_array(f.image) for f in given
+                     if f.led_index == TaggedFrame.LED_DARK]
+            return (sorted(lit, key=lambda f: f.led_index), self._camera_info,
+                    darks[0] if darks else None)
         timeout = float(self.get_parameter("capture_timeout").value)
         if not self._capture.wait_for_service(timeout_sec=timeout):
             raise FingerpsCalibError(
                 f"no images in the request and the driver's {self._capture.srv_name} service "
                 "is not available: start driver_node or send the images in the request")
         done = threading.Event()
-        future = self._capture.call_async(CaptureBurst.Request(response_only=True))
+        future = self._capture.call_async(
+            CaptureBurst.Request(response_only=True, with_dark_frame=with_dark))
         future.add_done_callback(lambda _: done.set())
         if not done.wait(timeout):
             raise FingerpsCalibError(
@@ -91,7 +99,8 @@ class CalibNode(Node):
             reason = response.message if response is not None else "no response"
             raise FingerpsCalibError(f"the driver's burst failed: {reason}")
         burst = response.burst
-        return sorted(burst.frames, key=lambda f: f.led_index), burst.camera_info
+        dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
+        return sorted(burst.frames, key=lambda f: f.led_index), burst.camera_info, dark
 
     @staticmethod
     def _stack(frames: list[TaggedFrame]) -> np.ndarray:
@@ -114,7 +123,7 @@ class CalibNode(Node):
         try:
             if radius <= 0:
                 raise FingerpsCalibError(f"sphere_radius must be > 0 m, got {radius}")
-            frames, info = self._frames(list(request.frames))
+            frames, info, _ = self._frames(list(request.frames), with_dark=False)
             images = self._stack(frames)
             if info is None or info.k[0] <= 0:
                 raise FingerpsCalibError(
@@ -161,12 +170,12 @@ class CalibNode(Node):
     def _on_flat(self, request: CalibrateFlatField.Request,
                  response: CalibrateFlatField.Response) -> CalibrateFlatField.Response:
         try:
-            frames, _ = self._frames(list(request.frames))
+            frames, _, dark = self._frames(list(request.frames), with_dark=True)
             images = self._stack(frames)
             full = 255.0 if frames[0].image.encoding == "mono8" else 4095.0
             result = flat_field_maps(
-                images, smoothing_sigma_px=float(self.get_parameter("flat_field_smoothing").value),
-                saturation_level=full)
+                images, dark=dark, saturation_level=full,
+                polynomial_degree=int(self.get_parameter("flat_field_degree").value))
         except FingerpsCalibError as exc:
             response.success, response.message = False, str(exc)
             self.get_logger().error(f"flat-field calibration refused: {exc}")

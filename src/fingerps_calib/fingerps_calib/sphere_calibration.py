@@ -25,6 +25,7 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from fingerps_calib.errors import FingerpsCalibError
+from fingerps_recon.frames import optical_to_ps
 
 #: Relative thresholds at which the highlight centroid is recomputed to measure its
 #: stability (`LightCalibrationResult.residuals_px`); the middle one gives the centroid.
@@ -101,7 +102,7 @@ class LightCalibrationResult:
     @property
     def directions_ps(self) -> np.ndarray:
         """(K, 3) float64: ``directions_optical`` in the PS frame (diag(1, -1, -1))."""
-        return self.directions_optical * np.array([1.0, -1.0, -1.0])
+        return optical_to_ps(self.directions_optical)
 
 
 @dataclass(frozen=True, eq=False)

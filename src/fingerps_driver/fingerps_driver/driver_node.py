@@ -55,6 +55,10 @@ class DriverNode(Node):
     def __init__(self) -> None:
         super().__init__("driver", namespace=topics.NAMESPACE)
         self._checks = ParameterChecks(self)
+        self._checks.add("camera", one_of("sim"))
+        self._checks.add("sim.scene", one_of(*(s.value for s in Scene)))
+        self._checks.add("sim.reflectance", one_of(*(r.value for r in Reflectance)))
+        self._checks.add("sim.bit_depth", lambda v: None if v in (8, 12) else "must be 8 or 12")
         p = self.declare_parameter
         p("port", SIM_PORT, descriptor(
             "Serial device of the LED board, or 'sim' for the built-in board emulator on a "
@@ -88,13 +92,6 @@ class DriverNode(Node):
                                          read_only=True))
         p("sim.seed", 0, descriptor("Seed of the simulated sensor noise", min_value=0,
                                     integer=True, read_only=True))
-        self._checks.add("camera", one_of("sim"))
-        self._checks.add("sim.scene", one_of(*(s.value for s in Scene)))
-        self._checks.add("sim.reflectance", one_of(*(r.value for r in Reflectance)))
-        self._checks.add("sim.bit_depth", lambda v: None if v in (8, 12) else "must be 8 or 12")
-        problems = self._checks.problems(self._parameters.values())
-        if problems:
-            raise StartupError("bad parameter value: " + "; ".join(problems))
 
         self._lock = threading.Lock()
         self._counters = _Counters()
@@ -138,8 +135,8 @@ class DriverNode(Node):
         except BoardError as exc:
             self._close_hardware()
             raise StartupError(
-                f"cannot use the LED board on {port!r}: {exc}. Check the cable and the "
-                "'port' parameter, or use port:=sim for the simulated rig") from None
+                f"cannot use the LED board: {exc} (or use port:=sim for the simulated "
+                "rig)") from None
         if info.led_count < self._led_count:
             self._close_hardware()
             raise StartupError(
@@ -171,11 +168,12 @@ class DriverNode(Node):
 
     def _close_hardware(self) -> None:
         """LEDs off, then close the board, the camera and the emulator (each idempotent)."""
-        if self._board is not None:
+        if self._board is not None and self._board.is_open:
             try:
                 self._board.all_off()
             except (FingerpsDriverError, OSError) as exc:
                 self.get_logger().warning(f"could not switch the LEDs off: {exc}")
+        if self._board is not None:
             self._board.close()
         if self._camera is not None:
             self._camera.close()

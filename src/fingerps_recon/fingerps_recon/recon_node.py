@@ -35,6 +35,7 @@ class ReconNode(Node):
     def __init__(self) -> None:
         super().__init__("recon", namespace=topics.NAMESPACE)
         self._checks = ParameterChecks(self)
+        self._checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
         p = self.declare_parameter
         p("queue_depth", 2, descriptor(
             "Bursts waiting for reconstruction; the oldest is dropped beyond this",
@@ -54,7 +55,6 @@ class ReconNode(Node):
         p("mono16_full_scale", 4095.0, descriptor(
             "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
             max_value=65535.0))
-        self._checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
 
         self._queue: deque[Burst] = deque(maxlen=int(self.get_parameter("queue_depth").value))
         self._cv = threading.Condition()
