@@ -27,12 +27,13 @@ from pathlib import Path
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 REPO = Path(__file__).resolve().parents[2]
 INSTALL = REPO / "install"
-DOMAIN_RANGE = range(100, 201)
+DOMAIN_RANGE = range(40, 102)  # Fast DDS ports of ids above 101 can collide with ephemeral ports
 START_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 20.0
 
@@ -192,3 +193,22 @@ def start_node(ros_domain: int, tmp_path: Path) -> Iterator[Callable[..., NodePr
     finally:
         for proc in reversed(started):
             proc.stop()
+
+
+@pytest.fixture
+def spin_until(ros_node: Node) -> Iterator[Callable[..., None]]:
+    """``spin_until(condition, what, timeout=20.0)``: spin ``ros_node`` until truthy."""
+    executor = SingleThreadedExecutor(context=ros_node.context)
+    executor.add_node(ros_node)
+
+    def until(condition: Callable[[], object], what: str, *, timeout: float = 20.0) -> None:
+        def step() -> object:
+            executor.spin_once(timeout_sec=0.05)
+            return condition()
+        wait_until(step, what, timeout=timeout)
+
+    try:
+        yield until
+    finally:
+        executor.remove_node(ros_node)
+        executor.shutdown()
