@@ -85,6 +85,8 @@ def test_burst_frames_are_tagged_with_the_led_that_lit_them(
     (["-p", "port:=/dev/fingerps_no_such_port"], "/dev/fingerps_no_such_port"),
     (["-p", "sim.scene:=banana"], "sim.scene"),
     (["-p", "led_count:=99"], "led_count"),
+    (["-p", "sim.sceen:=sphere"], "sim.sceen"),
+    (["--params-file", "/nonexistent/fingerps.yaml"], "params file"),
 ])
 def test_bad_start_up_input_is_one_clear_line(ros_domain: int, args: list[str],
                                               expected: str) -> None:
@@ -93,5 +95,5 @@ def test_bad_start_up_input_is_one_clear_line(ros_domain: int, args: list[str],
                          timeout=60)
     assert run.returncode == 2
     assert "Traceback" not in run.stderr + run.stdout
-    errors = [line for line in run.stderr.splitlines() if "error:" in line]
+    errors = [line for line in run.stderr.splitlines() if "] error:" in line]
     assert len(errors) == 1 and expected in errors[0], run.stderr

@@ -49,6 +49,8 @@ class CalibNode(Node):
             integer=True))
         p("camera_name", "fingerps_sim", descriptor("Camera name written into calibrations"))
 
+        self._checks.refuse_unknown_overrides(self)
+
         self._service_group = MutuallyExclusiveCallbackGroup()
         self._client_group = ReentrantCallbackGroup()
         self._capture = self.create_client(CaptureBurst, topics.CAPTURE_BURST,

@@ -93,6 +93,8 @@ class DriverNode(Node):
         p("sim.seed", 0, descriptor("Seed of the simulated sensor noise", min_value=0,
                                     integer=True, read_only=True))
 
+        self._checks.refuse_unknown_overrides(self)
+
         self._lock = threading.Lock()
         self._counters = _Counters()
         self._burst_id = 0

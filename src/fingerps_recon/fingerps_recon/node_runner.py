@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.exceptions import (
     InvalidParameterTypeException,
     InvalidParameterValueException,
@@ -19,6 +20,8 @@ from rclpy.exceptions import (
 )
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+
+from fingerps_recon.parameters import UnknownParameterError
 
 EXIT_BAD_INPUT = 2
 
@@ -46,7 +49,13 @@ def run_node(
     ``expected_errors`` (besides ``StartupError``) raised by construction are reported as
     one line on stderr and give exit code 2.
     """
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RCLError as exc:
+        reason = str(exc).split(", at ")[0]
+        print(f"[{name}] error: {reason}. Check the --ros-args and the parameter file.",
+              file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
     node: Node | None = None
     try:
         node = make_node()
@@ -55,7 +64,7 @@ def run_node(
         spinner.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (StartupError, *_PARAMETER_ERRORS, *expected_errors) as exc:
+    except (StartupError, UnknownParameterError, *_PARAMETER_ERRORS, *expected_errors) as exc:
         print(f"[{name}] error: {exc}", file=sys.stderr, flush=True)
         return EXIT_BAD_INPUT
     finally:

@@ -20,6 +20,11 @@ from rcl_interfaces.msg import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+
+class UnknownParameterError(Exception):
+    """A parameter file or --ros-args set a parameter the node does not have."""
+
+
 Check = Callable[[Any], str | None]
 """Returns None when the value is acceptable, else the reason it is refused."""
 
@@ -64,6 +69,17 @@ class ParameterChecks:
     def add(self, name: str, check: Check) -> None:
         """Run ``check`` on every new value of parameter ``name``."""
         self._checks[name] = check
+
+    def refuse_unknown_overrides(self, node: Node) -> None:
+        """Raise ``UnknownParameterError`` if the command line or a parameter file set a
+        parameter this node never declared (a typo would otherwise be silently ignored)."""
+        overrides = getattr(node, "_parameter_overrides", {})
+        unknown = sorted(name for name in overrides if not node.has_parameter(name))
+        if unknown:
+            known = ", ".join(sorted(node.list_parameters([], 0).names))
+            raise UnknownParameterError(
+                f"{node.get_fully_qualified_name()} has no parameter "
+                f"{', '.join(repr(u) for u in unknown)}; its parameters are: {known}")
 
     def problems(self, parameters: Iterable[Parameter]) -> list[str]:
         """Return 'name: reason' for each parameter whose value a check refuses."""

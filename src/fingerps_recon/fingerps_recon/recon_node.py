@@ -56,6 +56,8 @@ class ReconNode(Node):
             "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
             max_value=65535.0))
 
+        self._checks.refuse_unknown_overrides(self)
+
         self._queue: deque[Burst] = deque(maxlen=int(self.get_parameter("queue_depth").value))
         self._cv = threading.Condition()
         self._stop = False

@@ -225,6 +225,8 @@ class RecorderNode(Node):
             "dropped (and counted)", min_value=1, max_value=65536, integer=True,
             read_only=True))
 
+        self._checks.refuse_unknown_overrides(self)
+
         self._shutdown_logger = rclpy.logging.get_logger(f"{self.get_logger().name}.bag")
         self._use_sim_time = bool(self.get_parameter("use_sim_time").value)
         # Everything that can fail on bad input happens before the bag directory is made.
