@@ -81,7 +81,7 @@ def reconstruct(
     """
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    stack = np.asarray(images, dtype=np.float32)
+    stack = np.array(images, dtype=np.float32)  # a copy: saturated pixels are marked below
     if stack.ndim != 3 or stack.shape[0] != len(lights_ps):
         raise FingerpsReconError(
             f"images of shape {stack.shape} do not match {len(lights_ps)} light directions; "
