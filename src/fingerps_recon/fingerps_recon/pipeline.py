@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
@@ -20,10 +21,19 @@ from fingerps_recon.lambertian import solve_lambertian
 from fingerps_recon.normal_transform import enhance_ridges
 
 
+class Model(Enum):
+    """Reflectance model the normals are solved under."""
+
+    LAMBERT = "lambert"   # Lambertian photometric stereo (paper Eq. 3)
+    HK = "hk"             # simplified Hanrahan-Krueger model (paper Eq. 4-7)
+
+
 @dataclass(frozen=True)
 class ReconstructionOptions:
     """Options of :func:`reconstruct`; defaults are the simulated rig's."""
 
+    model: Model = Model.LAMBERT
+    hk_iterations: int = 10
     mask_threshold: float = 0.15
     shadow_fraction: float = 0.02
     """Values at or below this fraction of full scale count as shadow (left out)."""
@@ -81,11 +91,8 @@ def reconstruct(
     """
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    stack = np.array(images, dtype=np.float32)  # a copy: saturated pixels are marked below
-    if stack.ndim != 3 or stack.shape[0] != len(lights_ps):
-        raise FingerpsReconError(
-            f"images of shape {stack.shape} do not match {len(lights_ps)} light directions; "
-            "give one (H, W) image per calibrated LED")
+    stack = _checked_stack(images, len(lights_ps), full_scale=full_scale,
+                           shadow_fraction=options.shadow_fraction)
     saturated = stack >= options.saturation_fraction * full_scale
     if dark is not None:
         if np.shape(dark) != stack.shape[1:]:
@@ -98,15 +105,31 @@ def reconstruct(
     limit = float(stack.max()) + 1.0
     stack[saturated] = limit
     mask = finger_mask(np.where(saturated, 0.0, stack), threshold=options.mask_threshold)
+    if not mask.any():
+        raise FingerpsReconError(
+            "no finger in the burst (the mask selects nothing): place a finger in view, or "
+            "lower mask_threshold if it is there but dim")
     timings["prepare"] = (time.perf_counter() - t0) * 1e3
 
     t1 = time.perf_counter()
-    lam = solve_lambertian(
-        stack, np.asarray(lights_ps, dtype=np.float64), intensities=intensities, mask=mask,
-        shadow_level=options.shadow_fraction * full_scale, saturation_level=limit)
-    timings["normals"] = (time.perf_counter() - t1) * 1e3
+    lights = np.asarray(lights_ps, dtype=np.float64)
+    shadow_level = options.shadow_fraction * full_scale
+    lam = solve_lambertian(stack, lights, intensities=intensities, mask=mask,
+                           shadow_level=shadow_level, saturation_level=limit)
+    timings["lambert"] = (time.perf_counter() - t1) * 1e3
     valid = lam.valid & mask
-    normals = np.where(valid[..., None], lam.normals, 0.0).astype(np.float32)
+    normals, albedo = lam.normals, lam.albedo
+    if options.model is Model.HK:
+        from fingerps_recon.hk_solver import solve_hk
+
+        t1 = time.perf_counter()
+        usable = (stack > shadow_level) & (stack < limit)
+        hk = solve_hk(stack, lights, mask=valid, init_normals=normals, init_albedo=albedo,
+                      intensities=intensities, usable=usable,
+                      iterations=options.hk_iterations)
+        normals, albedo, valid = hk.normals, hk.albedo, hk.valid & valid
+        timings["hk"] = (time.perf_counter() - t1) * 1e3
+    normals = np.where(valid[..., None], normals, 0.0).astype(np.float32)
 
     enhanced = None
     if options.enhance:
@@ -120,7 +143,31 @@ def reconstruct(
     points, index = depth_to_points(depth, valid, camera_matrix=camera_matrix)
     timings["depth"] = (time.perf_counter() - t2) * 1e3
     timings["total"] = (time.perf_counter() - t0) * 1e3
-    albedo = lam.albedo.astype(np.float32)
+    albedo = np.where(valid, albedo, 0.0).astype(np.float32)
     return Reconstruction(
         normals_ps=normals, enhanced_ps=enhanced, albedo=albedo, mask=valid, depth_m=depth,
         points_optical=points, point_albedo=albedo.reshape(-1)[index], timings_ms=timings)
+
+
+def _checked_stack(images: np.ndarray, light_count: int, *, full_scale: float,
+                   shadow_fraction: float) -> np.ndarray:
+    """The burst as a new (K, H, W) float32 array, or a FingerpsReconError saying what is
+    wrong with it (shape, count, NaN, dark images)."""
+    stack = np.array(images, dtype=np.float32)
+    if stack.ndim != 3:
+        raise FingerpsReconError(
+            f"a burst must be K images of one size, (K, H, W); got shape {stack.shape}")
+    if stack.shape[0] != light_count:
+        raise FingerpsReconError(
+            f"{stack.shape[0]} images (shape {stack.shape}) but {light_count} light directions: "
+            "give one image per calibrated LED (recalibrate if the LED count changed)")
+    if not np.isfinite(stack).all():
+        raise FingerpsReconError("the images contain NaN or infinite values; check the camera")
+    brightest = stack.reshape(stack.shape[0], -1).max(axis=1)
+    dark = np.flatnonzero(brightest <= shadow_fraction * full_scale)
+    if dark.size:
+        raise FingerpsReconError(
+            f"image(s) of LED {', '.join(str(int(k)) for k in dark)} are dark (nothing above "
+            f"{shadow_fraction:.0%} of full scale {full_scale:g}): check that the LED works "
+            "and the finger is in view")
+    return stack

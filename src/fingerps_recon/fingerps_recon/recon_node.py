@@ -22,8 +22,8 @@ from fingerps_recon.frames import optical_to_ps, ps_to_optical
 from fingerps_recon.image_conversion import array_to_image, image_to_array
 from fingerps_recon.node_runner import run_node
 from fingerps_recon.normal_map import normal_map_rgb
-from fingerps_recon.parameters import ParameterChecks, descriptor
-from fingerps_recon.pipeline import ReconstructionOptions, reconstruct
+from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
+from fingerps_recon.pipeline import Model, ReconstructionOptions, reconstruct
 from fingerps_recon.point_cloud_conversion import points_to_cloud
 
 _FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
@@ -36,7 +36,14 @@ class ReconNode(Node):
         super().__init__("recon", namespace=topics.NAMESPACE)
         self._checks = ParameterChecks(self)
         self._checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
+        self._checks.add("model", one_of(*(m.value for m in Model)))
         p = self.declare_parameter
+        p("model", Model.LAMBERT.value, descriptor(
+            "Reflectance model of the normals: lambert (Lambertian photometric stereo) or hk "
+            "(the paper's simplified Hanrahan-Krueger skin model, initialised from lambert)"))
+        p("hk_iterations", 10, descriptor(
+            "Levenberg-Marquardt iterations of the HK solver", min_value=1, max_value=100,
+            integer=True))
         p("queue_depth", 2, descriptor(
             "Bursts waiting for reconstruction; the oldest is dropped beyond this",
             min_value=1, max_value=100, integer=True, read_only=True))
@@ -64,6 +71,7 @@ class ReconNode(Node):
         self._dropped = 0
         self._done = 0
         self._failed = 0
+        self._incomplete = 0
         self._last_error = ""
         self._lights: LightCalibration | None = None
         self._flat: FlatField | None = None
@@ -77,6 +85,7 @@ class ReconNode(Node):
         self._pub_normals = self.create_publisher(Image, topics.NORMALS, qos.OUTPUT_QOS)
         self._pub_map = self.create_publisher(Image, topics.NORMAL_MAP, qos.OUTPUT_QOS)
         self._pub_depth = self.create_publisher(Image, topics.DEPTH, qos.OUTPUT_QOS)
+        self._pub_albedo = self.create_publisher(Image, topics.ALBEDO, qos.OUTPUT_QOS)
         self._pub_points = self.create_publisher(PointCloud2, topics.POINTS, qos.OUTPUT_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self.create_timer(1.0, self._publish_diagnostics)
@@ -120,15 +129,22 @@ class ReconNode(Node):
             try:
                 self._reconstruct(burst)
                 self._done += 1
+                self._last_error = ""
+            except IncompleteBurstError as exc:
+                self._incomplete += 1
+                self._report(burst, exc)
             except FingerpsReconError as exc:
                 self._failed += 1
-                self._last_error = str(exc)
-                self.get_logger().error(f"burst {burst.burst_id}: {exc}",
-                                        throttle_duration_sec=5.0)
+                self._report(burst, exc)
+
+    def _report(self, burst: Burst, exc: Exception) -> None:
+        self._last_error = f"burst {burst.burst_id}: {exc}"
+        self.get_logger().error(self._last_error, throttle_duration_sec=2.0)
 
     def _options(self) -> ReconstructionOptions:
         g = self.get_parameter
         return ReconstructionOptions(
+            model=Model(g("model").value), hk_iterations=int(g("hk_iterations").value),
             mask_threshold=float(g("mask_threshold").value), enhance=bool(g("enhance").value),
             w=int(g("w").value), k=float(g("k").value),
             working_distance_m=float(g("working_distance").value))
@@ -139,13 +155,7 @@ class ReconNode(Node):
             raise FingerpsReconError(
                 "no light calibration yet: call the calibrate_lights service (or start "
                 "calib_node with a saved calibration) before sending bursts")
-        frames = sorted(burst.frames, key=lambda f: f.led_index)
-        if [f.led_index for f in frames] != list(range(len(lights.directions))):
-            raise FingerpsReconError(
-                f"burst {burst.burst_id} has LEDs {[f.led_index for f in frames]}, the "
-                f"calibration {len(lights.directions)} LEDs: a frame is missing; recapture")
-        images = np.stack([image_to_array(f.image) for f in frames])
-        encoding = frames[0].image.encoding
+        images, encoding = _burst_images(burst, len(lights.directions))
         full_scale = float(self.get_parameter("mono16_full_scale").value) \
             if encoding == "mono16" else _FULL_SCALE.get(encoding, 255.0)
         directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
@@ -158,10 +168,12 @@ class ReconNode(Node):
             maps = None
         dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
         k_matrix = np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3)
+        if k_matrix[0, 0] <= 0:
+            raise FingerpsReconError("the burst's camera_info has no intrinsics (fx <= 0)")
         result = reconstruct(
             images, lights_ps=optical_to_ps(directions), camera_matrix=k_matrix,
             full_scale=full_scale,
-            intensities=intensities if intensities.size == len(frames) else None,
+            intensities=intensities if intensities.size == len(images) else None,
             portions=maps, dark=dark, options=self._options())
         header = burst.header
         normals_optical = ps_to_optical(result.normals_ps).astype(np.float32)
@@ -171,6 +183,7 @@ class ReconNode(Node):
         self._pub_map.publish(array_to_image(normal_map_rgb(shown, mask=result.mask),
                                              encoding="rgb8", header=header))
         self._pub_depth.publish(array_to_image(result.depth_m, encoding="32FC1", header=header))
+        self._pub_albedo.publish(array_to_image(result.albedo, encoding="32FC1", header=header))
         self._pub_points.publish(points_to_cloud(result.points_optical, result.point_albedo,
                                                  header=header))
         self.get_logger().info(
@@ -184,6 +197,8 @@ class ReconNode(Node):
         status.message = "ok" if not self._last_error else self._last_error
         status.values = [KeyValue(key="bursts_done", value=str(self._done)),
                          KeyValue(key="bursts_failed", value=str(self._failed)),
+                         KeyValue(key="bursts_incomplete", value=str(self._incomplete)),
+                         KeyValue(key="last_error", value=self._last_error),
                          KeyValue(key="bursts_dropped", value=str(self._dropped)),
                          KeyValue(key="calibrated", value=str(self._lights is not None))]
         array = DiagnosticArray(status=[status])
@@ -198,6 +213,31 @@ class ReconNode(Node):
         if self._worker.is_alive():
             self._worker.join(timeout=10.0)
         super().destroy_node()
+
+
+class IncompleteBurstError(FingerpsReconError):
+    """A burst lacks a frame of some LED (it is never reconstructed)."""
+
+
+def _burst_images(burst: Burst, led_count: int) -> tuple[np.ndarray, str]:
+    """The burst's images as (K, H, W) in LED order and their encoding; or an error saying
+    what is wrong (a missing LED, mixed sizes or encodings)."""
+    frames = sorted(burst.frames, key=lambda f: f.led_index)
+    indices = [f.led_index for f in frames]
+    if indices != list(range(led_count)):
+        missing = sorted(set(range(led_count)) - set(indices))
+        raise IncompleteBurstError(
+            f"LEDs {indices} instead of 0..{led_count - 1}"
+            + (f" (missing {missing})" if missing else "")
+            + ": not reconstructed; the driver must publish whole bursts, or recalibrate if "
+            "the LED count changed")
+    encodings = {f.image.encoding for f in frames}
+    sizes = {(f.image.height, f.image.width) for f in frames}
+    if len(encodings) != 1 or len(sizes) != 1:
+        raise FingerpsReconError(
+            f"the burst mixes image encodings {sorted(encodings)} or sizes {sorted(sizes)}; "
+            "every frame of a burst must come from one camera mode")
+    return np.stack([image_to_array(f.image) for f in frames]), encodings.pop()
 
 
 def main(args: list[str] | None = None) -> int:

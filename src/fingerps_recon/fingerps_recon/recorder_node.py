@@ -84,6 +84,7 @@ TOPIC_TABLE: dict[str, RecordedTopic] = {
     topics.FLAT_FIELD: RecordedTopic("fingerps_msgs/msg/FlatField", qos.CALIBRATION_QOS),
     topics.NORMALS: RecordedTopic("sensor_msgs/msg/Image", qos.OUTPUT_QOS),
     topics.DEPTH: RecordedTopic("sensor_msgs/msg/Image", qos.OUTPUT_QOS),
+    topics.ALBEDO: RecordedTopic("sensor_msgs/msg/Image", qos.OUTPUT_QOS),
     topics.POINTS: RecordedTopic("sensor_msgs/msg/PointCloud2", qos.OUTPUT_QOS),
     topics.NORMAL_MAP: RecordedTopic("sensor_msgs/msg/Image", qos.OUTPUT_QOS),
 }
@@ -91,12 +92,13 @@ TOPIC_TABLE: dict[str, RecordedTopic] = {
 
 SESSION_TOPICS: tuple[str, ...] = (
     topics.FRAMES, topics.CAMERA_INFO, topics.BURST, topics.LIGHT_CALIBRATION,
-    topics.FLAT_FIELD, topics.NORMALS, topics.DEPTH, topics.POINTS, topics.NORMAL_MAP,
+    topics.FLAT_FIELD, topics.NORMALS, topics.DEPTH, topics.ALBEDO, topics.POINTS,
+    topics.NORMAL_MAP,
 )
 """Recorded by default."""
 
 OUTPUT_TOPICS: frozenset[str] = frozenset(
-    {topics.NORMALS, topics.DEPTH, topics.POINTS, topics.NORMAL_MAP})
+    {topics.NORMALS, topics.DEPTH, topics.ALBEDO, topics.POINTS, topics.NORMAL_MAP})
 """The heavy reconstruction outputs that ``record_outputs:=false`` leaves out."""
 
 

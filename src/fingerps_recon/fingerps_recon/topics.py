@@ -25,6 +25,7 @@ CALIBRATE_FLAT_FIELD = "calibrate_flat_field"     # fingerps_msgs/srv/CalibrateF
 NORMALS = "normals"                 # sensor_msgs/Image 32FC3, unit normals, optical frame
 NORMAL_MAP = "normal_map"           # sensor_msgs/Image rgb8, normals as colours for viewing
 DEPTH = "depth"                     # sensor_msgs/Image 32FC1, metres along the optical axis
+ALBEDO = "albedo"                   # sensor_msgs/Image 32FC1, albedo rho per pixel
 POINTS = "points"                   # sensor_msgs/PointCloud2, x y z intensity, optical frame
 
 DIAGNOSTICS = "/diagnostics"        # diagnostic_msgs/DiagnosticArray (absolute, as usual)
