@@ -2,9 +2,10 @@
 
 The test publishes a LightCalibration made from the simulated rig's truth (distant-light
 directions from the apex, optical frame; relative intensities at the apex) and Burst
-messages it renders itself. The node must publish the four outputs of each complete burst
-with the burst's header, refuse an incomplete burst without outputs and keep running, count
-the failure in its diagnostics, and stop cleanly on SIGINT.
+messages it renders itself. The node must publish the outputs of each complete burst with
+the burst's header; refuse, without outputs, a burst that lacks an LED's frame (counted as
+``bursts_incomplete``) and a burst with nothing in view (``bursts_failed``); keep running
+and reconstruct the next good burst; and stop cleanly on SIGINT.
 
 Bound on the normals' mean angular error: 3.5 deg, as in tests/core/test_pipeline.py (the
 same data through the same pipeline measures 3.21 deg; through the node the relative
@@ -37,7 +38,7 @@ NS = "/" + topics.NAMESPACE
 FRAME_ID = "fingerps_camera_optical_frame"
 MAX_MEAN_ERROR_DEG = 3.5
 OUTPUTS = {topics.NORMALS: Image, topics.NORMAL_MAP: Image, topics.DEPTH: Image,
-           topics.POINTS: PointCloud2}
+           topics.ALBEDO: Image, topics.POINTS: PointCloud2}
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +67,12 @@ def _calibration(rig: SimulatedRig) -> LightCalibration:
         sphere_radius=rig.config.sphere_radius_m)
 
 
+@pytest.fixture(scope="module")
+def empty_images(rig: SimulatedRig) -> np.ndarray:
+    return np.stack([rig.render(Scene.EMPTY, [k], rng=np.random.default_rng(40 + k))
+                     for k in range(rig.led_count)])
+
+
 def _burst(rig: SimulatedRig, images: np.ndarray, burst_id: int,
            leds: list[int] | None = None) -> Burst:
     header = Header(stamp=Time(sec=1000 + burst_id, nanosec=burst_id), frame_id=FRAME_ID)
@@ -91,7 +98,7 @@ def _diagnostic_values(arrays: list[DiagnosticArray]) -> list[dict[str, str]]:
 
 def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
         ros_node: Node, start_node, spin_until, rig: SimulatedRig, images: np.ndarray,
-        truth: FingerTruth) -> None:
+        empty_images: np.ndarray, truth: FingerTruth) -> None:
     # The calibration is published before recon starts: transient-local brings it.
     lights_pub = ros_node.create_publisher(
         LightCalibration, f"{NS}/{topics.LIGHT_CALIBRATION}", qos.CALIBRATION_QOS)
@@ -107,7 +114,7 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     diagnostics: list[DiagnosticArray] = []
     ros_node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diagnostics.append, 10)
 
-    recon = start_node("fingerps_recon", "recon_node")
+    recon = start_node("fingerps_recon", "recon_node", "--ros-args", "-p", "queue_depth:=4")
     recon.wait_in_graph(ros_node, "recon", NS)
     spin_until(lambda: burst_pub.get_subscription_count() >= 1
                and all(s.get_publisher_count() >= 1 for s in subscriptions),
@@ -116,13 +123,14 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
                            for v in _diagnostic_values(diagnostics)),
                "recon to report the light calibration received")
 
-    broken = _burst(rig, images, 1, leds=[0, 1, 2, 4, 5, 6])
-    good = _burst(rig, images, 2)
-    burst_pub.publish(broken)
-    burst_pub.publish(good)
-    # One worker, in order: once the good burst's outputs are out, the broken one is done.
+    incomplete = _burst(rig, images, 1, leds=[0, 1, 2, 4, 5, 6])
+    nothing_in_view = _burst(rig, empty_images, 2)
+    good = _burst(rig, images, 3)
+    for burst in (incomplete, nothing_in_view, good):  # queue_depth 4: none is dropped
+        burst_pub.publish(burst)
+    # One worker, in order: once the good burst's outputs are out, the others are done.
     spin_until(lambda: all(_key(good.header) in received[name] for name in OUTPUTS),
-               "the four outputs of the complete burst", timeout=20.0)
+               "the outputs of the complete burst", timeout=20.0)
     assert all(set(received[name]) == {_key(good.header)} for name in OUTPUTS), \
         {name: set(r) for name, r in received.items()}
     assert recon.running()
@@ -154,18 +162,28 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     np.testing.assert_array_equal(np.isfinite(depth), mask)
     assert np.all((depth[mask] > 0.085) & (depth[mask] < 0.100))
 
+    albedo_msg = received[topics.ALBEDO][_key(good.header)]
+    assert albedo_msg.encoding == "32FC1"
+    albedo = image_to_array(albedo_msg)
+    assert np.all(albedo[mask] > 0) and np.all(albedo[~mask] == 0)
+
     cloud = received[topics.POINTS][_key(good.header)]
     assert cloud.header.frame_id == FRAME_ID
     points, intensity = cloud_to_points(cloud)
     assert points.shape == (int(mask.sum()), 3) and intensity.shape == (points.shape[0],)
     np.testing.assert_allclose(np.sort(points[:, 2]), np.sort(depth[mask]), rtol=1e-6)
 
-    spin_until(lambda: any(int(v.get("bursts_failed", 0)) >= 1
-                           and int(v.get("bursts_done", 0)) >= 1
-                           for v in _diagnostic_values(diagnostics)),
-               "diagnostics counting the failed and the done burst", timeout=5.0)
+    def counted() -> bool:
+        return any(int(v.get("bursts_incomplete", 0)) >= 1
+                   and int(v.get("bursts_failed", 0)) >= 1
+                   and int(v.get("bursts_done", 0)) >= 1
+                   and v.get("bursts_dropped") == "0"
+                   for v in _diagnostic_values(diagnostics))
+    spin_until(counted, "diagnostics counting the incomplete, the failed and the done burst",
+               timeout=5.0)
+    assert counted(), _diagnostic_values(diagnostics)[-1]
 
     recon.send_signal(signal.SIGINT)
     assert recon.wait() == 0, recon.output
     assert "Traceback" not in recon.output
-    assert "a frame is missing" in recon.output  # the refusal was logged with its reason
+    assert "missing [3]" in recon.output  # the refusal was logged with its reason

@@ -1,0 +1,359 @@
+"""offline_recon end to end: the installed executable on DiLiGenT-layout folders in tmp_path.
+
+Folders: a Lambertian sphere rendered analytically under known lights (8-bit grey with
+one-channel intensities; 16-bit colour with per-channel intensities and a coloured albedo,
+the DiLiGenT case), and the simulated rig's finger (``SimulatedRig``, default HK skin, noiseless,
+8 bit, no mask.png so the pipeline's finger mask is used). Each run is a subprocess of the
+installed script, as ``ros2 run fingerps_recon offline_recon`` would start it.
+
+Measured: grey sphere mean angular error 0.076 deg (8-bit quantisation), colour sphere
+0.0002 deg (2.3 deg if light_intensities.txt is left out, so the per-channel rule is seen);
+the rig's finger 3.15 deg with Lambertian photometric stereo (near lights against the
+distant-light model; cf. tests/core/test_pipeline.py), heights within 0.1 mm rms of the truth.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import scipy.io
+from ament_index_python.packages import get_package_prefix
+
+from fingerps_driver.simulation import Scene, SimulatedRig
+from fingerps_recon.angular_error import angular_error_deg
+from fingerps_recon.normal_map import normal_map_rgb
+from fingerps_recon.ply import read_ply
+
+SPHERE_MAX_MEAN_DEG = 1.0   # measured 0.076 (8-bit grey), 0.0002 (16-bit colour)
+FINGER_MAX_MEAN_DEG = 5.0   # measured 3.15
+OUTPUTS = ("normals.npy", "albedo.npy", "depth.npy", "normal_map.png", "cloud.ply",
+           "report.json")
+
+
+# ----------------------------------------------------------------------------- folders
+
+
+def _lights(count: int) -> np.ndarray:
+    """Unit directions in a DiLiGenT-like cone: azimuths around, 20-45 deg from the axis."""
+    azimuth = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
+    tilt = np.deg2rad(np.resize([20.0, 35.0, 45.0], count))
+    return np.stack([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth),
+                     np.cos(tilt)], axis=1)
+
+
+def _sphere(height: int, width: int, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals (H, W, 3) in the PS frame, mask, and height (pixels) of a centred sphere."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    x, y = (u - (width - 1) / 2) / radius, -(v - (height - 1) / 2) / radius
+    r2 = x * x + y * y
+    mask = r2 < 1.0
+    nz = np.sqrt(np.clip(1.0 - r2, 0.0, None))
+    normals = np.where(mask[..., None], np.stack([x, y, nz], axis=2), 0.0)
+    return normals, mask, nz * radius
+
+
+def _write_sphere(folder: Path, *, colour16: bool, size: tuple[int, int] = (120, 140),
+                  radius: float = 50.0, count: int = 12) -> tuple[np.ndarray, np.ndarray,
+                                                                  np.ndarray]:
+    """Render the sphere into a DiLiGenT-layout folder with mask.png and Normal_gt.mat."""
+    folder.mkdir(parents=True)
+    lights = _lights(count)
+    normals, mask, height = _sphere(*size, radius)
+    shading = np.clip(np.einsum("hwc,kc->khw", normals, lights), 0.0, None)
+    names = [f"{i + 1:03d}.png" for i in range(count)]
+    if colour16:
+        e = np.stack([np.linspace(0.7, 1.3, count), np.linspace(1.1, 0.9, count),
+                      np.full(count, 0.6)], axis=1)
+        rho = np.array([0.9, 0.6, 0.8])
+        frames = shading[..., None] * e[:, None, None, :] * rho * 60000.0
+        frames = np.clip(np.rint(frames), 0, 65535).astype(np.uint16)[..., ::-1]  # BGR
+        np.savetxt(folder / "light_intensities.txt", e)
+    else:
+        e = np.linspace(0.8, 1.2, count)
+        frames = np.clip(np.rint(shading * e[:, None, None] * 200.0), 0, 255).astype(np.uint8)
+        np.savetxt(folder / "light_intensities.txt", e[:, None])
+    for name, frame in zip(names, frames, strict=True):
+        assert cv2.imwrite(str(folder / name), np.ascontiguousarray(frame))
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(folder / "light_directions.txt", lights)
+    assert cv2.imwrite(str(folder / "mask.png"), mask.astype(np.uint8) * 255)
+    scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": normals})
+    return normals, mask, height
+
+
+@pytest.fixture(scope="module")
+def offline_recon() -> Callable[..., subprocess.CompletedProcess]:
+    """``offline_recon(*args)``: run the installed executable, return the finished process."""
+    path = Path(get_package_prefix("fingerps_recon")) / "lib/fingerps_recon/offline_recon"
+    if not os.access(path, os.X_OK):
+        pytest.fail(f"{path} is not built: run 'make build' (then 'source tools/ros_env.sh')")
+
+    def run(*args: str | Path) -> subprocess.CompletedProcess:
+        return subprocess.run([str(path), *map(str, args)], capture_output=True, text=True,
+                              timeout=180)
+    return run
+
+
+def _ok(run: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
+    assert run.returncode == 0, f"offline_recon failed:\n{run.stdout}\n{run.stderr}"
+    assert run.stderr == ""
+    return run
+
+
+def _mean_error(normals: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    return float(np.nanmean(angular_error_deg(normals, truth, mask=mask)))
+
+
+# ----------------------------------------------------------------------------- spheres
+
+
+def test_grey_8bit_sphere(offline_recon: Callable, tmp_path: Path) -> None:
+    truth, mask, height = _write_sphere(tmp_path / "sphere", colour16=False)
+    out = tmp_path / "out"
+    run = _ok(offline_recon(tmp_path / "sphere", "--out", out))
+    for name in OUTPUTS:
+        assert (out / name).is_file(), name
+    assert not (out / "normals_enhanced.npy").exists()
+
+    normals, albedo = np.load(out / "normals.npy"), np.load(out / "albedo.npy")
+    depth = np.load(out / "depth.npy")
+    assert normals.shape == (120, 140, 3) and normals.dtype == np.float32
+    assert albedo.shape == (120, 140) and albedo.dtype == np.float32
+    assert depth.shape == (120, 140) and depth.dtype == np.float32
+    assert np.all(normals[~mask] == 0.0) and np.all(albedo[~mask] == 0.0)
+    assert np.all(np.isnan(depth[~mask]))
+    valid = np.linalg.norm(normals, axis=2) > 0
+    assert valid.sum() == mask.sum()  # every sphere pixel has >= 3 lit lights
+    error = _mean_error(normals, truth, mask)
+    print(f"\ngrey sphere: mean angular error {error:.4f} deg")
+    assert error < SPHERE_MAX_MEAN_DEG
+    np.testing.assert_allclose(albedo[mask], 200.0, rtol=0.02)  # 200 grey levels per unit e
+
+    # Depth: the sphere's height in pixel units (no --pixel-size), zero mean over the mask.
+    expected = height - height[mask].mean()
+    assert np.abs(depth[mask] - expected[mask]).mean() < 0.2  # measured 0.053 px
+    assert abs(float(depth[mask].mean())) < 1e-3
+
+    # The ground-truth evaluation, printed and in the report, matches ours.
+    report = json.loads((out / "report.json").read_text())
+    assert report["normal_gt"]["file"] == "Normal_gt.mat"
+    assert report["normal_gt"]["mean_deg"] == pytest.approx(error, abs=1e-4)
+    assert report["normal_gt"]["pixels"] == mask.sum()
+    assert f"angular error vs Normal_gt.mat: mean {error:.3f} deg" in run.stdout
+    assert (report["images"], report["height"], report["width"]) == (12, 120, 140)
+    assert report["mask_pixels"] == report["valid_pixels"] == mask.sum()
+    assert report["depth_unit"] == "px" and report["enhancement"] is None
+    assert set(report["timings_ms"]) >= {"load", "reconstruct", "depth", "write", "total"}
+
+    picture = cv2.cvtColor(cv2.imread(str(out / "normal_map.png")), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(picture, normal_map_rgb(normals, mask=mask))
+
+    # The cloud: one point per valid pixel, orthographic, optical frame, z = -height.
+    cloud = read_ply(out / "cloud.ply")
+    rows, cols = np.nonzero(mask)
+    assert cloud["points"].shape == (mask.sum(), 3)
+    np.testing.assert_allclose(cloud["points"][:, 0], cols - 69.5)
+    np.testing.assert_allclose(cloud["points"][:, 1], rows - 59.5)
+    np.testing.assert_allclose(cloud["points"][:, 2], -depth[rows, cols], atol=1e-5)
+    np.testing.assert_allclose(cloud["intensity"], albedo[rows, cols])
+    np.testing.assert_allclose(cloud["normals"], normals[rows, cols] * [1, -1, -1], atol=1e-6)
+
+
+def test_colour_16bit_sphere_with_channel_intensities_and_enhancement(
+        offline_recon: Callable, tmp_path: Path) -> None:
+    truth, mask, _ = _write_sphere(tmp_path / "sphere", colour16=True)
+    out = tmp_path / "out"
+    run = _ok(offline_recon(tmp_path / "sphere", "--out", out, "--w", "5",
+                            "--pixel-size", "1e-4"))
+    normals = np.load(out / "normals.npy")
+    enhanced = np.load(out / "normals_enhanced.npy")
+    assert enhanced.shape == normals.shape and enhanced.dtype == np.float32
+    assert np.all(enhanced[~mask] == 0.0)
+    error = _mean_error(normals, truth, mask)  # the unenhanced normals
+    print(f"\ncolour sphere: mean angular error {error:.4f} deg")
+    assert error < SPHERE_MAX_MEAN_DEG
+    assert _mean_error(enhanced, normals, mask) > 0.01  # the enhanced ones differ
+    picture = cv2.cvtColor(cv2.imread(str(out / "normal_map.png")), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(picture, normal_map_rgb(enhanced, mask=mask))
+
+    report = json.loads((out / "report.json").read_text())
+    assert report["bit_depth"] == 16
+    assert report["colour_conversion"].startswith("colour: each channel divided by its")
+    assert report["enhancement"] == {"w": 5, "k": 2.5}
+    assert report["depth_unit"] == "m" and report["pixel_size"] == 1e-4
+    depth = np.load(out / "depth.npy")
+    assert 8e-3 < np.nanmax(depth) - np.nanmin(depth) < 1.2e-2  # a 5 mm sphere, cap ~1 cm
+    assert "angular error vs Normal_gt.mat" in run.stdout
+
+
+def test_the_channel_intensities_matter(offline_recon: Callable, tmp_path: Path) -> None:
+    # Without light_intensities.txt the colour sphere is visibly wrong: the rule is used.
+    truth, mask, _ = _write_sphere(tmp_path / "sphere", colour16=True)
+    (tmp_path / "sphere/light_intensities.txt").unlink()
+    _ok(offline_recon(tmp_path / "sphere", "--out", tmp_path / "out"))
+    assert _mean_error(np.load(tmp_path / "out/normals.npy"), truth, mask) > 1.0
+
+
+# ----------------------------------------------------------------------------- rig finger
+
+
+@pytest.fixture(scope="module")
+def finger_folder(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, SimulatedRig]:
+    folder = tmp_path_factory.mktemp("finger")
+    rig = SimulatedRig()
+    names = []
+    for k in range(rig.led_count):
+        frame = np.clip(np.rint(rig.noiseless(Scene.FINGER, [k]) * 255), 0, 255)
+        names.append(f"led{k}.png")
+        assert cv2.imwrite(str(folder / names[-1]), frame.astype(np.uint8))
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(folder / "light_directions.txt", rig.light_directions_ps())
+    np.savetxt(folder / "light_intensities.txt", rig.light_intensities())
+    truth = rig.finger_truth()
+    scipy.io.savemat(folder / "Normal_gt.mat",
+                     {"Normal_gt": np.where(truth.mask[..., None], truth.normals_ps, 0.0)})
+    return folder, rig
+
+
+def test_rig_finger_without_mask(offline_recon: Callable, tmp_path: Path,
+                                 finger_folder: tuple[Path, SimulatedRig]) -> None:
+    folder, rig = finger_folder
+    truth = rig.finger_truth()
+    out = tmp_path / "out"
+    run = _ok(offline_recon(folder, "--out", out, "--pixel-size", "3e-5"))
+    assert "no mask.png: the pipeline's finger mask" in run.stdout
+    normals = np.load(out / "normals.npy")
+    assert normals.shape == (rig.config.height, rig.config.width, 3)
+    valid = np.linalg.norm(normals, axis=2) > 0
+    assert (valid & truth.mask).sum() > 0.95 * truth.mask.sum()
+    assert (valid & ~truth.mask).sum() < 0.01 * truth.mask.sum()
+    error = _mean_error(normals, truth.normals_ps, valid & truth.mask)
+    print(f"\nrig finger: mean angular error {error:.3f} deg")
+    assert error < FINGER_MAX_MEAN_DEG
+    report = json.loads((out / "report.json").read_text())
+    assert report["mask_source"] == "pipeline finger mask" and report["mask_pixels"] is None
+    assert report["normal_gt"]["mean_deg"] == pytest.approx(error, abs=0.05)
+
+    # Heights in metres at 30 um a pixel against the truth (perspective, so not exact).
+    depth = np.load(out / "depth.npy")
+    both = valid & truth.mask
+    true_height = -truth.depth_m.astype(np.float64)
+    true_height -= true_height[both].mean()
+    ours = depth - depth[both].mean()
+    span = np.ptp(true_height[both])
+    assert np.ptp(ours[both]) == pytest.approx(span, rel=0.05)  # measured 5.12 vs 5.21 mm
+    assert np.sqrt(np.mean((ours[both] - true_height[both]) ** 2)) < 2e-4  # measured 82 um
+
+
+def test_model_hk(offline_recon: Callable, tmp_path: Path,
+                  finger_folder: tuple[Path, SimulatedRig]) -> None:
+    folder, _ = finger_folder
+    run = offline_recon(folder, "--out", tmp_path / "out", "--model", "hk")
+    if importlib.util.find_spec("fingerps_recon.hk_solver") is None:
+        assert run.returncode == 2
+        assert run.stderr.strip() == ("offline_recon: error: the HK solver is not available "
+                                      "in this build; use --model lambert")
+        assert not (tmp_path / "out").exists()
+    else:
+        _ok(run)
+        assert json.loads((tmp_path / "out/report.json").read_text())["model"] == "hk"
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def _small_sphere(folder: Path) -> None:
+    _write_sphere(folder, colour16=False, size=(40, 48), radius=16.0, count=6)
+
+
+def _spoil(folder: Path, case: str) -> list[str]:
+    """Break a valid small-sphere folder in one way; returns extra arguments."""
+    lights = (folder / "light_directions.txt").read_text().splitlines()
+    if case == "missing filenames.txt":
+        (folder / "filenames.txt").unlink()
+    elif case == "listed image missing":
+        (folder / "003.png").unlink()
+    elif case == "image sizes differ":
+        cv2.imwrite(str(folder / "003.png"), np.full((40, 50), 99, np.uint8))
+    elif case == "light rows != images":
+        (folder / "light_directions.txt").write_text("\n".join(lights[:5]))
+    elif case == "malformed light row":
+        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], "0.1 0.2"]))
+    elif case == "zero light row":
+        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], "0 0 0"]))
+    elif case == "non-unit light row":
+        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], "0 0 2"]))
+    elif case == "mask size":
+        cv2.imwrite(str(folder / "mask.png"), np.full((41, 48), 255, np.uint8))
+    elif case == "mask selects nothing":
+        cv2.imwrite(str(folder / "mask.png"), np.zeros((40, 48), np.uint8))
+    elif case == "all-dark image":
+        cv2.imwrite(str(folder / "002.png"), np.full((40, 48), 2, np.uint8))
+    elif case == "missing folder":
+        return ["--out", str(folder.parent / "out"), str(folder.parent / "nowhere")]
+    elif case == "out is a file":
+        (folder.parent / "file").write_text("")
+        return ["--out", str(folder.parent / "file")]
+    elif case == "saturation above full scale":
+        return ["--saturation", "300"]
+    elif case == "even --w":
+        return ["--w", "4"]
+    else:
+        raise AssertionError(case)
+    return []
+
+
+BAD_CASES = {
+    "missing folder": "nowhere: no such folder",
+    "missing filenames.txt": "filenames.txt: missing",
+    "listed image missing": "003.png is listed in filenames.txt but",
+    "image sizes differ": "003.png is 50x40 but 001.png is 48x40",
+    "light rows != images": "light_directions.txt has 5 rows but filenames.txt lists 6 images",
+    "malformed light row": "light_directions.txt line 6: 2 numbers, expected 3",
+    "zero light row": "light_directions.txt row 6 is a zero vector",
+    "non-unit light row": "light_directions.txt row 6 has length 2, not a unit vector",
+    "mask size": "mask.png is 48x41 but the images are 48x40",
+    "mask selects nothing": "mask.png selects nothing",
+    "all-dark image": "002.png is dark",
+    "out is a file": "exists and is not a folder",
+    "saturation above full scale": "at most at the 8-bit full scale 255, got 300",
+    "even --w": "argument --w: 4 must be an odd integer >= 3",
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_CASES))
+def test_bad_input_exits_2_with_one_line(offline_recon: Callable, tmp_path: Path,
+                                         case: str) -> None:
+    folder = tmp_path / "sphere"
+    _small_sphere(folder)
+    extra = _spoil(folder, case)
+    args = extra if case == "missing folder" else [folder, "--out", tmp_path / "out", *extra]
+    run = offline_recon(*args)
+    assert run.returncode == 2, f"{run.stdout}\n{run.stderr}"
+    assert "Traceback" not in run.stderr and run.stdout == ""
+    message = run.stderr.strip().splitlines()[-1]
+    assert BAD_CASES[case] in message, run.stderr
+    if not case.startswith("even"):  # argparse prints its usage line first
+        assert len(run.stderr.strip().splitlines()) == 1
+        assert message.startswith("offline_recon: error: ")
+
+
+def test_the_small_sphere_itself_is_fine(offline_recon: Callable, tmp_path: Path) -> None:
+    # The bad-input cases above differ from this valid folder in one way each.
+    _small_sphere(tmp_path / "sphere")
+    _ok(offline_recon(tmp_path / "sphere", "--out", tmp_path / "out"))
+
+
+def test_help_names_the_colour_rule(offline_recon: Callable) -> None:
+    run = _ok(offline_recon("--help"))
+    text = " ".join(run.stdout.split())
+    assert "each channel is divided by its intensity and the channels are averaged" in text
+    assert "Rec. 601 luma" in text and "--pixel-size" in text and "--model" in text
