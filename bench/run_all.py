@@ -13,11 +13,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import bench_calib
 import bench_driver
+import bench_driver_publish
 import bench_e2e
 import bench_recon
 
-BENCHMARKS = (bench_driver, bench_recon, bench_e2e)
+BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon, bench_calib, bench_e2e)
 
 
 def main(argv: list[str] | None = None) -> int:

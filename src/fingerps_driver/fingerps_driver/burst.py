@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from fingerps_driver.board_protocol import MAX_LEVEL
-from fingerps_driver.camera import ENCODING_DTYPES, Camera
+from fingerps_driver.camera import ENCODING_DTYPES, Camera, ExposureControl
 from fingerps_driver.errors import FingerpsDriverError
 
 DARK_LED = 255
@@ -82,6 +82,12 @@ class BurstResult:
         Why the burst failed (step, LED, error and what to do); ``""`` when ok.
     duration_s : float
         Wall time from the first command to the last, failure or not.
+    failed_step : str
+        The step that failed (``"level"``, ``"exposure"``, ``"switch"``, ``"grab"``,
+        ``"off"``, ``"dark"``); ``""`` when ok.
+    error_type : str
+        Class name of the error that failed it (``"BoardDisconnectedError"``,
+        ``"CameraError"``...), ``""`` when ok or when the step failed a check.
     """
 
     burst_id: int
@@ -90,6 +96,13 @@ class BurstResult:
     ok: bool
     reason: str
     duration_s: float
+    failed_step: str = ""
+    error_type: str = ""
+
+    @property
+    def camera_failed(self) -> bool:
+        """True if the burst failed at the camera (a grab or an exposure change)."""
+        return self.failed_step in ("grab", "dark", "exposure")
 
 
 class _StepFailedError(Exception):
@@ -97,6 +110,8 @@ class _StepFailedError(Exception):
 
     def __init__(self, step: str, led: int | None, detail: str | Exception) -> None:
         where = f"step '{step}'" + ("" if led is None else f" LED {led}")
+        self.step = step
+        self.error_type = type(detail).__name__ if isinstance(detail, Exception) else ""
         if isinstance(detail, Exception):
             detail = f"{type(detail).__name__}: {detail}"
         super().__init__(f"{where}: {detail}")
@@ -129,7 +144,9 @@ def capture_burst(
     board : LedSwitch
         The open LED board (``LedBoard``).
     camera : Camera
-        The open camera; it is assumed configured for ``exposures_s``.
+        The open camera. If it provides ``ExposureControl``, its exposure is set to each
+        LED's before that LED is switched on; otherwise it is assumed configured for
+        ``exposures_s`` (which are then only recorded in the tags).
     burst_id : int
         Copied into the result.
     led_order : sequence of int
@@ -190,7 +207,13 @@ def capture_burst(
             except FingerpsDriverError as exc:
                 raise _StepFailedError("level", led, exc) from exc
         frames = []
+        exposure_control = camera if isinstance(camera, ExposureControl) else None
         for led, exposure, code in zip(order, exposures, codes, strict=True):
+            if exposure_control is not None:
+                try:
+                    exposure_control.set_exposure(exposure)
+                except FingerpsDriverError as exc:
+                    raise _StepFailedError("exposure", led, exc) from exc
             try:
                 acked = board.set_leds(1 << led)
             except FingerpsDriverError as exc:
@@ -209,6 +232,11 @@ def capture_burst(
         dark = None
         if with_dark:
             exposure = max(exposures)
+            if exposure_control is not None:
+                try:
+                    exposure_control.set_exposure(exposure)
+                except FingerpsDriverError as exc:
+                    raise _StepFailedError("exposure", None, exc) from exc
             stamp = clock()
             image = _grab(camera, "dark", None, exposure + grab_timeout_s, shape, dtype)
             dark = CapturedFrame(DARK_LED, image, stamp, exposure, 0.0)
@@ -218,7 +246,8 @@ def capture_burst(
         except FingerpsDriverError:
             pass
         reason = f"burst {burst_id} failed at {exc}"
-        return BurstResult(burst_id, (), None, False, reason, time.monotonic() - start)
+        return BurstResult(burst_id, (), None, False, reason, time.monotonic() - start,
+                           failed_step=exc.step, error_type=exc.error_type)
     return BurstResult(burst_id, tuple(frames), dark, True, "", time.monotonic() - start)
 
 

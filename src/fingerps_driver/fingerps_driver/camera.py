@@ -1,9 +1,15 @@
-"""Camera interface of the driver, and a simulated camera.
+"""Camera interface of the driver, the frame checks every backend shares, and a simulated
+camera.
 
-``Camera`` is the one interface the burst sequencer needs. ``SimulatedCamera`` renders
-whatever LEDs the board has *actually* lit when ``grab`` is called (it asks a
-``lit_leds`` callable, normally reading ``BoardEmulator.lit_leds``), so a simulated burst
-goes through the serial path exactly like a real one.
+``Camera`` is the one interface the burst sequencer needs; a camera whose exposure can be
+set between frames also provides ``ExposureControl``. Backends:
+
+- ``SimulatedCamera`` (here) renders whatever LEDs the board has *actually* lit when
+  ``grab`` is called (it asks a ``lit_leds`` callable, normally reading
+  ``BoardEmulator.lit_leds``), so a simulated burst goes through the serial path exactly
+  like a real one;
+- ``camera_opencv.OpenCvCamera``: a real camera through OpenCV (V4L2 on Linux);
+- ``camera_folder.FolderCamera``: replays a folder of images taken elsewhere.
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Protocol, runtime_checkable
 
+import cv2
 import numpy as np
 
 from fingerps_driver.errors import FingerpsDriverError
@@ -22,6 +29,75 @@ ENCODING_DTYPES = {"mono8": np.dtype(np.uint8), "mono16": np.dtype(np.uint16)}
 
 class CameraError(FingerpsDriverError):
     """The camera delivered no frame, or a frame of the wrong size or type."""
+
+
+@runtime_checkable
+class ExposureControl(Protocol):
+    """A camera whose exposure time can be changed between frames."""
+
+    def set_exposure(self, exposure_s: float) -> None:
+        """Use ``exposure_s`` seconds from the next frame on.
+
+        Raises ``CameraError`` if the camera fails; a backend may instead record a setting
+        the device refuses and go on (``OpenCvCamera.refused_settings``).
+        """
+        ...
+
+
+def to_mono(frame: object, *, encoding: str, source: str) -> np.ndarray:
+    """One camera frame as a monochrome image of ``encoding``.
+
+    Parameters
+    ----------
+    frame : (H, W), (H, W, 1), (H, W, 3) BGR or (H, W, 4) BGRA array, or None
+        What the backend delivered (OpenCV channel order). Colour is converted with
+        ``cv2.cvtColor`` (Rec. 601 luma, 0.299 R + 0.587 G + 0.114 B).
+    encoding : str
+        ``"mono8"`` (needs uint8 data) or ``"mono16"`` (needs uint16 data). Bit depth is
+        never invented or thrown away: an 8-bit frame for mono16 (or the reverse) is an
+        error.
+    source : str
+        Names the camera in error messages.
+
+    Returns
+    -------
+    image : (H, W) uint8 or uint16
+        A new C-contiguous array.
+
+    Raises
+    ------
+    CameraError
+        No frame, or a frame that cannot be made into ``encoding``.
+    """
+    if encoding not in ENCODING_DTYPES:
+        raise ValueError(f"encoding {encoding!r} is not one of {sorted(ENCODING_DTYPES)}")
+    if frame is None:
+        raise CameraError(f"no frame from {source}")
+    if not isinstance(frame, np.ndarray):
+        raise CameraError(f"{source} delivered a {type(frame).__name__}, not an image")
+    dtype = ENCODING_DTYPES[encoding]
+    if frame.dtype != dtype:
+        hint = {"mono8": "mono16", "mono16": "mono8"}[encoding]
+        raise CameraError(
+            f"{source} delivered {frame.dtype} pixels, not {dtype} for {encoding}; set the "
+            f"pixel format to {hint} (or make the camera deliver {encoding})")
+    if frame.ndim == 3 and frame.shape[2] == 1:
+        frame = frame[:, :, 0]
+    if frame.ndim == 3 and frame.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if frame.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        return cv2.cvtColor(np.ascontiguousarray(frame), code)
+    if frame.ndim != 2 or frame.size == 0:
+        raise CameraError(f"{source} delivered a frame of shape {frame.shape}, not an image")
+    return np.array(frame, dtype=dtype, order="C", copy=True)
+
+
+def check_frame(image: np.ndarray, *, width: int, height: int, source: str) -> np.ndarray:
+    """Return ``image`` if it is (height, width); else raise ``CameraError`` saying so."""
+    if image.shape != (height, width):
+        raise CameraError(
+            f"{source} delivered a frame of {image.shape[1]}x{image.shape[0]} instead of "
+            f"{width}x{height}; check the camera's resolution")
+    return image
 
 
 @runtime_checkable
@@ -151,7 +227,10 @@ class SimulatedCamera:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
         if not self._open:
             raise CameraError("SimulatedCamera is not open; call open() first")
-        lit = tuple(sorted(self._lit_leds()))
+        try:
+            lit = tuple(sorted(self._lit_leds()))
+        except FingerpsDriverError as exc:
+            raise CameraError(f"no frame: cannot see which LEDs are lit ({exc})") from exc
         try:
             image = self._render(lit)
         except Exception as exc:  # the simulated sensor failed: no frame

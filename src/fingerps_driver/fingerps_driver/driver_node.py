@@ -1,30 +1,62 @@
 """driver_node: switches the LEDs over serial, captures and tags bursts, publishes them.
 
-Thin ROS adapter: parameters, QoS, message conversion; the sequencing is
-``fingerps_driver.burst.capture_burst`` and the board protocol ``fingerps_driver.led_board``.
+Thin ROS adapter: parameters, QoS, message conversion, the board's connection state; the
+sequencing is ``fingerps_driver.burst.capture_burst``, the board protocol
+``fingerps_driver.led_board``, the cameras ``camera``, ``camera_opencv`` and
+``camera_folder``.
 
 With ``port`` = ``sim`` (the default) the node starts the board emulator on a real
 pseudo-terminal in this process and drives it through pyserial exactly as it would drive the
-real board; the simulated camera renders whatever LEDs the emulator has actually lit.
+real board; the simulated camera renders whatever LEDs the emulator has actually lit. With
+another port and ``camera`` = ``sim`` (or ``folder``), ``sim.board_control`` names the
+control socket of a ``board_emulator`` process, through which the camera sees what that
+emulator has lit (the serial port stays the only way LEDs are switched).
+
+The board: a disconnect (a burst fails with ``BoardDisconnectedError``, or the port vanishes)
+closes the port, reports it (log and diagnostics ERROR) and retries opening it from a timer
+with exponential back-off (``reconnect_initial_s`` .. ``reconnect_max_s``); captures asked
+for meanwhile fail at once with a message saying so. ``wait_for_port`` makes a board missing
+at start the same wait instead of exit code 2.
 """
 
 from __future__ import annotations
 
+import collections
+import os
+import statistics
 import threading
+import time
 from dataclasses import dataclass
+from enum import Enum
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
-from fingerps_driver.board_emulator import BoardEmulator
+from fingerps_calib.camera_info_yaml import load_camera_info
+from fingerps_calib.errors import FingerpsCalibError
+from fingerps_driver.backoff import Backoff
+from fingerps_driver.board_emulator import BoardEmulator, BoardEmulatorControl
+from fingerps_driver.board_protocol import mask_to_indices
 from fingerps_driver.burst import BurstResult, CapturedFrame, capture_burst
-from fingerps_driver.camera import Camera, SimulatedCamera
+from fingerps_driver.burst_plan import (
+    MAX_EXPOSURE_S,
+    MIN_EXPOSURE_S,
+    BurstPlan,
+    check_exposures,
+    check_led_order,
+    check_levels,
+    make_plan,
+)
+from fingerps_driver.camera import Camera, CameraError, SimulatedCamera
+from fingerps_driver.camera_folder import FolderCamera
+from fingerps_driver.camera_opencv import OpenCvCamera, parse_device
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.led_board import BoardError, LedBoard
+from fingerps_driver.led_board import BoardError, BoardRejectedError, LedBoard
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
@@ -35,6 +67,24 @@ from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
 
 SIM_PORT = "sim"
 DARK_LED = TaggedFrame.LED_DARK
+TIMING_WINDOW = 200
+"""Bursts over which the diagnostics' burst and publish time medians/maxima are taken."""
+
+
+class CameraBackend(Enum):
+    """The ``camera`` parameter."""
+
+    SIM = "sim"
+    V4L2 = "v4l2"
+    FOLDER = "folder"
+
+
+class BoardState(Enum):
+    """Connection state of the LED board."""
+
+    CONNECTED = "connected"
+    DISCONNECTED = "disconnected"  # lost while running; reconnecting
+    WAITING = "waiting"  # not there at start (wait_for_port); retrying
 
 
 @dataclass
@@ -42,11 +92,24 @@ class _Counters:
     ok: int = 0
     failed: int = 0
     last_error: str = ""
+    last_burst_failed: bool = False
     last_burst_ms: float = 0.0
+    last_publish_ms: float = 0.0
+    camera_error: str = ""
+    board_error: str = ""
+    disconnects: int = 0
+    reconnects: int = 0
+    reconnect_attempts: int = 0
 
 
 def _stamp(ns: int) -> Time:
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def _array_value(node: Node, name: str) -> list:
+    """An array parameter's value as a list; [] when it is not set."""
+    value = node.get_parameter_or(name, Parameter(name, value=None)).value
+    return list(value) if value is not None else []
 
 
 class DriverNode(Node):
@@ -54,34 +117,166 @@ class DriverNode(Node):
 
     def __init__(self) -> None:
         super().__init__("driver", namespace=topics.NAMESPACE)
-        self._checks = ParameterChecks(self)
-        self._checks.add("camera", one_of("sim"))
-        self._checks.add("sim.scene", one_of(*(s.value for s in Scene)))
-        self._checks.add("sim.reflectance", one_of(*(r.value for r in Reflectance)))
-        self._checks.add("sim.bit_depth", lambda v: None if v in (8, 12) else "must be 8 or 12")
+        self._declare_parameters()
+        self._checks.refuse_unknown_overrides(self)
+
+        self._lock = threading.Lock()
+        self._counters = _Counters()
+        self._burst_ms: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
+        self._publish_ms: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
+        self._burst_id = 0
+        self._emulator: BoardEmulator | None = None
+        self._control: BoardEmulatorControl | None = None
+        self._board: LedBoard | None = None
+        self._camera: Camera | None = None
+        self._rig: SimulatedRig | None = None
+        self._camera_info = CameraInfo()
+        self._board_state = BoardState.DISCONNECTED
+        self._firmware = ""
+        self._reconnect_timer = None
+        self._next_attempt = 0.0
+        self._closed = False
+        self._backoff = Backoff(float(self._param("reconnect_initial_s")),
+                                max(float(self._param("reconnect_max_s")),
+                                    float(self._param("reconnect_initial_s"))))
+        try:
+            self._open_hardware()
+        except BaseException:
+            self._close_hardware()
+            raise
+
+        self._pub_frames = self.create_publisher(TaggedFrame, topics.FRAMES, qos.SENSOR_QOS)
+        self._pub_image = self.create_publisher(Image, topics.IMAGE_RAW, qos.SENSOR_QOS)
+        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, qos.SENSOR_QOS)
+        self._pub_burst = self.create_publisher(Burst, topics.BURST, qos.BURST_QOS)
+        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        self.create_service(CaptureBurst, topics.CAPTURE_BURST, self._on_capture)
+        self.create_timer(1.0, self._on_diagnostics_timer)
+        self._rate_timer = None
+        self._apply_rate(self._param("rate"))
+        self.add_post_set_parameters_callback(self._after_set)
+        if self._board_state is not BoardState.CONNECTED:
+            self._schedule_reconnect()
+        assert self._camera is not None and self._board is not None
+        self.get_logger().info(
+            f"driver ready: board on {self._board.port} ({self._board_state.value}), "
+            f"{self._led_count} LEDs, order {list(self._plan().led_order)}, camera "
+            f"{self._param('camera')} {self._camera.width}x{self._camera.height} "
+            f"{self._camera.encoding}")
+
+    # ------------------------------------------------------------------ parameters
+    def _param(self, name: str) -> object:
+        return self.get_parameter(name).value
+
+    @property
+    def _led_count(self) -> int:
+        return int(self._param("led_count"))
+
+    def _declare_parameters(self) -> None:
+        checks = self._checks = ParameterChecks(self)
+        checks.add("camera", one_of(*(c.value for c in CameraBackend)))
+        checks.add("camera_pixel_format", one_of("", "mono8", "mono16"))
+        checks.add("camera_fourcc", lambda v: None if len(v) in (0, 4) and v.isascii()
+                   else "must be four ASCII characters (e.g. GREY, YUYV, MJPG) or empty")
+        checks.add("camera_width", lambda v: None if v >= 0 else "must be >= 0 (0 = default)")
+        checks.add("camera_height", lambda v: None if v >= 0 else "must be >= 0 (0 = default)")
+        checks.add("sim.scene", one_of(*(s.value for s in Scene)))
+        checks.add("sim.reflectance", one_of(*(r.value for r in Reflectance)))
+        checks.add("sim.bit_depth", lambda v: None if v in (8, 12) else "must be 8 or 12")
+        checks.add("led_order", lambda v: check_led_order(list(v), self._led_count))
+        checks.add("exposure_times",
+                   lambda v: check_exposures(list(v) if v is not None else None,
+                                             self._led_count))
+        checks.add("led_levels",
+                   lambda v: check_levels(list(v) if v is not None else None, self._led_count))
+        checks.add("reconnect_max_s", lambda v: None if v >= self._param("reconnect_initial_s")
+                   else "must be >= reconnect_initial_s")
         p = self.declare_parameter
+        # the board
         p("port", SIM_PORT, descriptor(
-            "Serial device of the LED board, or 'sim' for the built-in board emulator on a "
-            "pseudo-terminal", read_only=True))
+            "Serial device of the LED board (e.g. /dev/ttyACM0, or the emulator's --link), "
+            "or 'sim' for the built-in board emulator on a pseudo-terminal", read_only=True))
         p("baudrate", 115200, descriptor("Serial baud rate", min_value=1200,
                                          max_value=4_000_000, integer=True, read_only=True))
-        p("camera", "sim", descriptor("Camera backend: 'sim' (the simulated rig)",
-                                      read_only=True))
+        p("board_timeout", 0.05, descriptor(
+            "Seconds one attempt waits for the board's reply", min_value=0.005, max_value=2.0,
+            read_only=True))
+        p("board_retries", 2, descriptor(
+            "Resends of a command after a lost, late or corrupted reply", min_value=0,
+            max_value=10, integer=True, read_only=True))
+        p("wait_for_port", False, descriptor(
+            "If the board is missing at start, wait and retry (with back-off) instead of "
+            "exiting with code 2", read_only=True))
+        p("reconnect_initial_s", 0.5, descriptor(
+            "First delay before reopening a lost board, seconds; doubled per failed attempt",
+            min_value=0.01, max_value=60.0, read_only=True))
+        p("reconnect_max_s", 5.0, descriptor(
+            "Longest delay between attempts to reopen a lost board, seconds",
+            min_value=0.01, max_value=600.0, read_only=True))
         p("led_count", 7, descriptor("Number of LEDs on the board", min_value=3,
                                      max_value=16, integer=True, read_only=True))
+        led_count = self._led_count
+        p("led_order", list(range(led_count)), descriptor(
+            "LEDs captured in a burst, in capture order (0-based, each at most once; default "
+            "all in index order). Bursts are published sorted by LED index"))
+        # exposure and levels
         p("exposure_time", 0.01, descriptor("Exposure time per frame, seconds",
-                                            min_value=1e-5, max_value=1.0))
+                                            min_value=MIN_EXPOSURE_S, max_value=MAX_EXPOSURE_S))
+        p("exposure_times", Parameter.Type.DOUBLE_ARRAY, descriptor(
+            "Exposure time of each LED, seconds, indexed by LED (one per LED); not set or "
+            "empty: exposure_time for all"))
         p("led_level", 1.0, descriptor("Relative LED drive level, 0..1", min_value=0.0,
                                        max_value=1.0))
+        p("led_levels", Parameter.Type.DOUBLE_ARRAY, descriptor(
+            "Relative drive level 0..1 of each LED, indexed by LED (one per LED); not set or "
+            "empty: led_level for all"))
+        # capture modes
         p("rate", 0.0, descriptor(
             "Continuous capture rate in bursts per second; 0 = only on request",
             min_value=0.0, max_value=30.0))
         p("with_dark_frame", False, descriptor(
             "Add an all-LEDs-off frame to continuous bursts (ambient subtraction)"))
+        # the camera
+        p("camera", CameraBackend.SIM.value, descriptor(
+            "Camera backend: 'sim' (the simulated rig), 'v4l2' (a real camera through "
+            "OpenCV/V4L2) or 'folder' (replay of a DiLiGenT-layout image folder)",
+            read_only=True))
+        p("camera_device", "/dev/video0", descriptor(
+            "v4l2: device path (e.g. /dev/video0 or /dev/v4l/by-id/...) or index",
+            read_only=True))
+        p("camera_folder", "", descriptor(
+            "folder: the folder holding filenames.txt; the i-th listed image is LED i's",
+            read_only=True))
+        p("camera_width", 0, descriptor(
+            "Image width to ask for (v4l2), to expect (folder) or to render (sim); 0 = the "
+            "camera's", min_value=0, max_value=16384, integer=True, read_only=True))
+        p("camera_height", 0, descriptor(
+            "Image height, as camera_width", min_value=0, max_value=16384, integer=True,
+            read_only=True))
+        p("camera_pixel_format", "", descriptor(
+            "mono8 or mono16; empty = the camera's (v4l2: mono8, folder: the images' bit "
+            "depth, sim: sim.bit_depth)", read_only=True))
+        p("camera_fourcc", "", descriptor(
+            "v4l2: pixel format to ask for (GREY, YUYV, MJPG, 'Y16 '...); empty = mono8: "
+            "the camera's default, mono16: 'Y16 '", read_only=True))
+        p("camera_fps", 0.0, descriptor("v4l2: frame rate to ask for; 0 = the camera's",
+                                         min_value=0.0, max_value=1000.0, read_only=True))
+        p("camera_gain", -1.0, descriptor(
+            "v4l2: gain in the device's units; negative = leave it as it is",
+            min_value=-1.0, max_value=1e6, read_only=True))
+        p("camera_discard_frames", 1, descriptor(
+            "v4l2: frames dropped after each LED switch before the one kept (a free-running "
+            "camera's frame in progress mixes two lights)", min_value=0, max_value=10,
+            integer=True, read_only=True))
+        p("camera_info_file", "", descriptor(
+            "camera_info YAML (camera_calibration's format) published as CameraInfo; empty: "
+            "the sim rig's intrinsics, or none (K = 0) for the other cameras",
+            read_only=True))
         p("frame_id", "fingerps_camera_optical_frame", descriptor(
             "TF frame of the camera's optical frame (REP-103)", read_only=True))
         p("camera_name", "fingerps_sim", descriptor("Camera name in CameraInfo/calibration",
                                                     read_only=True))
+        # the simulated rig
         p("sim.scene", Scene.FINGER.value, descriptor(
             "What the simulated camera sees: finger, sphere, white_target or empty"))
         p("sim.reflectance", Reflectance.HK.value, descriptor(
@@ -92,105 +287,20 @@ class DriverNode(Node):
                                          read_only=True))
         p("sim.seed", 0, descriptor("Seed of the simulated sensor noise", min_value=0,
                                     integer=True, read_only=True))
+        p("sim.board_control", "", descriptor(
+            "Control socket of a board_emulator process (its --control): with a port other "
+            "than 'sim', the sim and folder cameras see the LEDs that emulator has lit",
+            read_only=True))
 
-        self._checks.refuse_unknown_overrides(self)
+    def _plan(self) -> BurstPlan:
+        return make_plan(
+            led_count=self._led_count,
+            led_order=list(self._param("led_order")),
+            exposure_time=float(self._param("exposure_time")),
+            exposure_times=_array_value(self, "exposure_times"),
+            led_level=float(self._param("led_level")),
+            led_levels=_array_value(self, "led_levels"))
 
-        self._lock = threading.Lock()
-        self._counters = _Counters()
-        self._burst_id = 0
-        self._emulator: BoardEmulator | None = None
-        self._board: LedBoard | None = None
-        self._camera: Camera | None = None
-        self._closed = False
-        self._open_hardware()
-
-        self._pub_frames = self.create_publisher(TaggedFrame, topics.FRAMES, qos.SENSOR_QOS)
-        self._pub_image = self.create_publisher(Image, topics.IMAGE_RAW, qos.SENSOR_QOS)
-        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, qos.SENSOR_QOS)
-        self._pub_burst = self.create_publisher(Burst, topics.BURST, qos.BURST_QOS)
-        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        self.create_service(CaptureBurst, topics.CAPTURE_BURST, self._on_capture)
-        self.create_timer(1.0, self._publish_diagnostics)
-        self._rate_timer = None
-        self._apply_rate(self.get_parameter("rate").value)
-        self.add_post_set_parameters_callback(self._after_set)
-        self.get_logger().info(
-            f"driver ready: board on {self._board.port if self._board else '?'}, "
-            f"{self._led_count} LEDs, camera {self._camera.width}x{self._camera.height} "
-            f"{self._camera.encoding}")
-
-    # ------------------------------------------------------------------ set-up
-    @property
-    def _led_count(self) -> int:
-        return int(self.get_parameter("led_count").value)
-
-    def _open_hardware(self) -> None:
-        port = str(self.get_parameter("port").value)
-        if port == SIM_PORT:
-            self._emulator = BoardEmulator(self._led_count)
-            self._emulator.start()
-            port = self._emulator.port
-        self._board = LedBoard(port, baudrate=int(self.get_parameter("baudrate").value))
-        try:
-            self._board.open()
-            info = self._board.info()
-        except BoardError as exc:
-            self._close_hardware()
-            raise StartupError(
-                f"cannot use the LED board: {exc} (or use port:=sim for the simulated "
-                "rig)") from None
-        if info.led_count < self._led_count:
-            self._close_hardware()
-            raise StartupError(
-                f"the board on {port!r} has {info.led_count} LEDs but led_count is "
-                f"{self._led_count}; set led_count to at most {info.led_count}")
-        self._camera = self._make_sim_camera()
-        self._camera.open()
-
-    def _make_sim_camera(self) -> Camera:
-        config = RigConfig(
-            reflectance=Reflectance(self.get_parameter("sim.reflectance").value),
-            bit_depth=int(self.get_parameter("sim.bit_depth").value))
-        self._rig = SimulatedRig(config)
-        if self._rig.led_count != self._led_count:
-            raise StartupError(
-                f"the simulated rig has {self._rig.led_count} LEDs; set led_count to that")
-        rng = np.random.default_rng(int(self.get_parameter("sim.seed").value))
-        emulator = self._emulator
-        if emulator is None:
-            raise StartupError("camera:=sim needs port:=sim (the simulated board)")
-
-        def render(lit: tuple[int, ...] | list[int]) -> np.ndarray:
-            scene = Scene(self.get_parameter("sim.scene").value)
-            return self._rig.render(scene, list(lit), rng=rng)
-
-        encoding = "mono8" if config.bit_depth == 8 else "mono16"
-        return SimulatedCamera(render, emulator.lit_leds, width=config.width,
-                               height=config.height, encoding=encoding)
-
-    def _close_hardware(self) -> None:
-        """LEDs off, then close the board, the camera and the emulator (each idempotent)."""
-        if self._board is not None and self._board.is_open:
-            try:
-                self._board.all_off()
-            except (FingerpsDriverError, OSError) as exc:
-                self.get_logger().warning(f"could not switch the LEDs off: {exc}")
-        if self._board is not None:
-            self._board.close()
-        if self._camera is not None:
-            self._camera.close()
-        if self._emulator is not None:
-            self._emulator.stop()
-
-    def destroy_node(self) -> None:
-        """Switch the LEDs off and close the board and camera (idempotent)."""
-        if not self._closed:
-            self._closed = True
-            with self._lock:
-                self._close_hardware()
-        super().destroy_node()
-
-    # ------------------------------------------------------------------ parameters
     def _after_set(self, parameters: list) -> None:
         for param in parameters:
             if param.name == "rate":
@@ -203,9 +313,248 @@ class DriverNode(Node):
         if rate > 0:
             self._rate_timer = self.create_timer(1.0 / rate, self._on_rate_timer)
 
+    # ------------------------------------------------------------------ set-up
+    def _open_hardware(self) -> None:
+        port = str(self._param("port"))
+        if port == SIM_PORT:
+            self._emulator = BoardEmulator(self._led_count)
+            self._emulator.start()
+            port = self._emulator.port
+        control_path = str(self._param("sim.board_control"))
+        if control_path:
+            self._control = BoardEmulatorControl(control_path, timeout_s=1.0)
+        self._board = LedBoard(port, baudrate=int(self._param("baudrate")),
+                               timeout_s=float(self._param("board_timeout")),
+                               retries=int(self._param("board_retries")))
+        try:  # the board first: a missing port is the first thing to say
+            self._connect_board()
+            missing = None
+        except BoardError as exc:
+            if not self._param("wait_for_port") or isinstance(exc, _WrongBoardError):
+                raise StartupError(
+                    f"cannot use the LED board: {exc} (or use port:=sim for the simulated "
+                    "rig, or wait_for_port:=true to wait for it)") from None
+            missing = exc
+        self._camera = self._make_camera()
+        try:
+            self._camera.open()
+        except CameraError as exc:
+            raise StartupError(f"cannot use the camera: {exc}") from None
+        self._camera_info = self._make_camera_info()
+        if isinstance(self._camera, OpenCvCamera) and self._camera.refused_settings:
+            self.get_logger().warning(
+                f"the camera refused {', '.join(self._camera.refused_settings)}; it runs with "
+                "its own values there")
+        if missing is not None:
+            self._board_state = BoardState.WAITING
+            self._counters.board_error = str(missing)
+            self.get_logger().warning(f"waiting for the LED board on {port}: {missing}")
+
+    def _connect_board(self) -> None:
+        """Open the port, check the board, switch everything off; raises ``BoardError``."""
+        board = self._board
+        assert board is not None
+        try:
+            board.open()
+            info = board.info()
+            if info.led_count < self._led_count:
+                raise _WrongBoardError(
+                    f"the board on {board.port!r} has {info.led_count} LEDs but led_count is "
+                    f"{self._led_count}; set led_count to at most {info.led_count}")
+            board.all_off()
+        except BoardError:
+            board.close()
+            raise
+        self._firmware = info.firmware
+        self._board_state = BoardState.CONNECTED
+        self._counters.board_error = ""
+
+    def _lit_source(self) -> object:
+        """What the replaying cameras (sim, folder) ask for the LEDs lit now."""
+        if self._control is not None:
+            return self._control.lit_leds
+        if self._emulator is not None:
+            return self._emulator.lit_leds
+        board = self._board
+
+        def acknowledged() -> tuple[int, ...]:
+            mask = board.acknowledged_mask if board is not None else None
+            if mask is None:
+                raise FingerpsDriverError("the board has acknowledged no switch yet")
+            return mask_to_indices(mask)
+        return acknowledged
+
+    def _make_camera(self) -> Camera:
+        backend = CameraBackend(self._param("camera"))
+        width, height = int(self._param("camera_width")), int(self._param("camera_height"))
+        if (width == 0) != (height == 0):
+            raise StartupError("set camera_width and camera_height both, or neither")
+        pixel_format = str(self._param("camera_pixel_format"))
+        if backend is CameraBackend.SIM:
+            return self._make_sim_camera(width, height, pixel_format)
+        if backend is CameraBackend.FOLDER:
+            folder = str(self._param("camera_folder"))
+            if not folder:
+                raise StartupError("camera:=folder needs camera_folder (a DiLiGenT-layout "
+                                   "folder with filenames.txt)")
+            return FolderCamera(folder, lit_leds=self._lit_source(), led_count=self._led_count,
+                                width=width, height=height, encoding=pixel_format)
+        plan = self._plan()
+        return OpenCvCamera(
+            parse_device(str(self._param("camera_device"))), width=width, height=height,
+            fps=float(self._param("camera_fps")), exposure_s=plan.exposures_s[0],
+            gain=float(self._param("camera_gain")), pixel_format=pixel_format or "mono8",
+            fourcc=str(self._param("camera_fourcc")),
+            discard_frames=int(self._param("camera_discard_frames")))
+
+    def _make_sim_camera(self, width: int, height: int, pixel_format: str) -> Camera:
+        bit_depth = int(self._param("sim.bit_depth"))
+        encoding = "mono8" if bit_depth == 8 else "mono16"
+        if pixel_format and pixel_format != encoding:
+            raise StartupError(
+                f"camera_pixel_format {pixel_format} does not match sim.bit_depth {bit_depth} "
+                f"({encoding}); leave camera_pixel_format empty or change sim.bit_depth")
+        size = {"width": width, "height": height} if width else {}
+        try:
+            config = RigConfig(reflectance=Reflectance(self._param("sim.reflectance")),
+                               bit_depth=bit_depth, **size)
+        except FingerpsDriverError as exc:
+            raise StartupError(str(exc)) from None
+        rig = self._rig = SimulatedRig(config)
+        if rig.led_count != self._led_count:
+            raise StartupError(
+                f"the simulated rig has {rig.led_count} LEDs; set led_count to that")
+        if self._emulator is None and self._control is None:
+            raise StartupError(
+                "camera:=sim needs port:=sim (the built-in board emulator) or, with a "
+                "board_emulator process, sim.board_control:=<its --control socket>")
+        rig.warm_up((Scene(self._param("sim.scene")),))  # the first burst is as fast as any
+        rng = np.random.default_rng(int(self._param("sim.seed")))
+
+        def render(lit: tuple[int, ...] | list[int]) -> np.ndarray:
+            scene = Scene(self.get_parameter("sim.scene").value)
+            return rig.render(scene, list(lit), rng=rng)
+
+        return SimulatedCamera(render, self._lit_source(), width=config.width,
+                               height=config.height, encoding=encoding)
+
+    def _make_camera_info(self) -> CameraInfo:
+        assert self._camera is not None
+        width, height = self._camera.width, self._camera.height
+        info = CameraInfo(width=width, height=height)
+        path = str(self._param("camera_info_file"))
+        if path:
+            try:
+                intrinsics = load_camera_info(path)
+            except FingerpsCalibError as exc:
+                raise StartupError(str(exc)) from None
+            if (intrinsics.width, intrinsics.height) != (width, height):
+                raise StartupError(
+                    f"camera info file {path} is for {intrinsics.width}x{intrinsics.height} "
+                    f"images but the camera delivers {width}x{height}; calibrate at this "
+                    "resolution or set camera_width/camera_height")
+            info.distortion_model = intrinsics.distortion_model
+            info.d = [float(x) for x in intrinsics.distortion]
+            info.k = [float(x) for x in intrinsics.camera_matrix.ravel()]
+            info.r = [float(x) for x in intrinsics.rectification.ravel()]
+            info.p = [float(x) for x in intrinsics.projection.ravel()]
+            return info
+        if self._rig is None:
+            self.get_logger().warning(
+                "no camera_info_file: CameraInfo carries no intrinsics (K = 0, "
+                "uncalibrated); calibrate the camera and set camera_info_file")
+            return info
+        k = self._rig.camera_matrix
+        info.distortion_model = "plumb_bob"
+        info.d = [0.0] * 5
+        info.k = [float(x) for x in k.reshape(-1)]
+        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        info.p = [float(k[0, 0]), 0.0, float(k[0, 2]), 0.0,
+                  0.0, float(k[1, 1]), float(k[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
+        return info
+
+    def _close_hardware(self) -> None:
+        """LEDs off, then close the board, the camera and the emulator (each idempotent)."""
+        if self._board is not None and self._board.is_open:
+            try:
+                self._board.all_off()
+            except (FingerpsDriverError, OSError) as exc:
+                self.get_logger().warning(f"could not switch the LEDs off: {exc}")
+        if self._board is not None:
+            self._board.close()
+        if self._camera is not None:
+            self._camera.close()
+        if self._control is not None:
+            self._control.close()
+        if self._emulator is not None:
+            self._emulator.stop()
+
+    def destroy_node(self) -> None:
+        """Switch the LEDs off and close the board and camera (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            with self._lock:
+                self._close_hardware()
+        super().destroy_node()
+
+    # ------------------------------------------------------------------ board connection
+    def _board_lost(self, reason: str) -> None:
+        """The board vanished: close it, report it, start reconnecting."""
+        assert self._board is not None
+        self._board.close()
+        self._board_state = BoardState.DISCONNECTED
+        self._counters.disconnects += 1
+        self._counters.board_error = reason
+        self._counters.reconnect_attempts = 0
+        self.get_logger().error(
+            f"LED board on {self._board.port} lost: {reason}; reconnecting with back-off "
+            f"({self._backoff.initial_s:g} s .. {self._backoff.max_s:g} s)")
+        self._schedule_reconnect()
+        self._publish_diagnostics()
+
+    def _schedule_reconnect(self) -> None:
+        if self._reconnect_timer is not None or self._closed:
+            return
+        delay = self._backoff.delay_s(self._counters.reconnect_attempts)
+        self._next_attempt = time.monotonic() + delay
+        self._reconnect_timer = self.create_timer(delay, self._try_reconnect)
+
+    def _try_reconnect(self) -> None:
+        if self._reconnect_timer is not None:
+            self.destroy_timer(self._reconnect_timer)
+            self._reconnect_timer = None
+        if self._closed or self._board_state is BoardState.CONNECTED:
+            return
+        self._counters.reconnect_attempts += 1
+        with self._lock:
+            try:
+                self._connect_board()
+            except BoardError as exc:
+                self._counters.board_error = str(exc)
+                self.get_logger().warning(
+                    f"LED board still unavailable (attempt "
+                    f"{self._counters.reconnect_attempts}): {exc}", throttle_duration_sec=10.0)
+                self._schedule_reconnect()
+                return
+        self._counters.reconnects += 1
+        assert self._board is not None
+        self.get_logger().info(
+            f"LED board on {self._board.port} connected ({self._firmware}) after "
+            f"{self._counters.reconnect_attempts} attempt(s)")
+        self._counters.reconnect_attempts = 0
+        self._publish_diagnostics()
+
+    def _port_vanished(self) -> bool:
+        """True if the connected board's device node is gone (USB unplugged, link removed)."""
+        assert self._board is not None
+        return (self._board_state is BoardState.CONNECTED
+                and not os.path.exists(self._board.port))
+
     # ------------------------------------------------------------------ capture
     def _on_rate_timer(self) -> None:
-        self.capture(with_dark=bool(self.get_parameter("with_dark_frame").value))
+        if self._board_state is not BoardState.CONNECTED:
+            return  # reported in the diagnostics; requests would only fail
+        self.capture(with_dark=bool(self._param("with_dark_frame")))
 
     def _on_capture(self, request: CaptureBurst.Request,
                     response: CaptureBurst.Response) -> CaptureBurst.Response:
@@ -219,77 +568,193 @@ class DriverNode(Node):
 
     def capture(self, *, with_dark: bool, publish: bool = True
                 ) -> tuple[BurstResult, Burst | None]:
-        """Capture one burst, publish it if asked; return the result and the message if whole."""
+        """Capture one burst, publish it if asked; return the result and the message if whole.
+
+        A failed burst is counted, logged and never published.
+        """
         with self._lock:
             if self._closed or self._board is None or self._camera is None:
                 raise FingerpsDriverError("the driver is shutting down")
-            self._burst_id += 1
-            count = self._led_count
-            result = capture_burst(
-                self._board, self._camera, burst_id=self._burst_id,
-                led_order=range(count),
-                exposures_s=float(self.get_parameter("exposure_time").value),
-                levels=float(self.get_parameter("led_level").value),
-                with_dark=with_dark,
-                expected_shape=(self._camera.height, self._camera.width))
+            if self._board_state is not BoardState.CONNECTED:
+                result = self._refused(self._not_connected_reason())
+            else:
+                self._burst_id += 1
+                plan = self._plan()
+                result = capture_burst(
+                    self._board, self._camera, burst_id=self._burst_id,
+                    led_order=plan.led_order, exposures_s=plan.exposures_s,
+                    levels=plan.levels, with_dark=with_dark,
+                    expected_shape=(self._camera.height, self._camera.width))
         if not result.ok:
-            self._counters.failed += 1
-            self._counters.last_error = result.reason
-            self.get_logger().warning(f"burst {result.burst_id} failed: {result.reason}")
+            self._burst_failed(result)
             return result, None
-        self._counters.ok += 1
-        self._counters.last_burst_ms = result.duration_s * 1e3
-        return result, self._publish(result, count, publish=publish)
+        c = self._counters
+        c.ok += 1
+        c.last_burst_failed = False
+        c.last_burst_ms = result.duration_s * 1e3
+        self._burst_ms.append(c.last_burst_ms)
+        return result, self._publish(result, publish=publish)
 
-    def _camera_info(self, header: Header) -> CameraInfo:
-        k = self._rig.camera_matrix
-        info = CameraInfo(header=header, width=self._camera.width, height=self._camera.height)
-        info.distortion_model = "plumb_bob"
-        info.d = [0.0] * 5
-        info.k = [float(x) for x in k.reshape(-1)]
-        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-        info.p = [float(k[0, 0]), 0.0, float(k[0, 2]), 0.0,
-                  0.0, float(k[1, 1]), float(k[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
-        return info
+    def _not_connected_reason(self) -> str:
+        assert self._board is not None
+        wait = max(0.0, self._next_attempt - time.monotonic())
+        state = ("is not there yet" if self._board_state is BoardState.WAITING
+                 else "is disconnected")
+        return (f"no burst: the LED board on {self._board.port} {state} "
+                f"({self._counters.board_error}); reconnecting, next attempt in {wait:.1f} s")
 
-    def _tagged(self, frame: CapturedFrame, burst_id: int, count: int) -> TaggedFrame:
-        header = Header(stamp=_stamp(frame.stamp_ns),
-                        frame_id=str(self.get_parameter("frame_id").value))
+    def _refused(self, reason: str) -> BurstResult:
+        return BurstResult(0, (), None, False, reason, 0.0, failed_step="board",
+                           error_type="BoardDisconnectedError")
+
+    def _burst_failed(self, result: BurstResult) -> None:
+        c = self._counters
+        c.failed += 1
+        c.last_error = result.reason
+        c.last_burst_failed = True
+        if result.camera_failed:
+            c.camera_error = result.reason
+        self.get_logger().warning(result.reason, throttle_duration_sec=1.0)
+        board = self._board
+        if (board is not None and self._board_state is BoardState.CONNECTED
+                and not board.is_open):
+            self._board_lost(result.reason)
+        elif result.error_type == BoardRejectedError.__name__:
+            self.get_logger().error("the board rejected a command: check led_count and "
+                                    "led_order against the board", throttle_duration_sec=10.0)
+
+    def _tagged(self, frame: CapturedFrame, burst_id: int, header_frame: str) -> TaggedFrame:
+        assert self._camera is not None
+        header = Header(stamp=_stamp(frame.stamp_ns), frame_id=header_frame)
         return TaggedFrame(
-            header=header, burst_id=burst_id, led_index=frame.led_index, led_count=count,
-            exposure_time=frame.exposure_s, led_intensity=frame.level,
+            header=header, burst_id=burst_id, led_index=frame.led_index,
+            led_count=self._led_count, exposure_time=frame.exposure_s,
+            led_intensity=frame.level,
             image=array_to_image(frame.image, encoding=self._camera.encoding, header=header))
 
-    def _publish(self, result: BurstResult, count: int, *, publish: bool) -> Burst:
-        tagged = [self._tagged(f, result.burst_id, count) for f in result.frames]
-        for msg in tagged if publish else ():
-            self._pub_frames.publish(msg)
-            self._pub_image.publish(msg.image)
+    def _publish(self, result: BurstResult, *, publish: bool) -> Burst:
+        """Build the messages (and publish them); the time it takes is ``publish_ms``."""
+        start = time.perf_counter()
+        frame_id = str(self._param("frame_id"))
+        tagged = [self._tagged(f, result.burst_id, frame_id) for f in result.frames]
+        if publish:
+            for msg in tagged:  # in capture order, as they were taken
+                self._pub_frames.publish(msg)
+                self._pub_image.publish(msg.image)
         last = tagged[-1].header
-        info = self._camera_info(last)
-        burst = Burst(header=last, burst_id=result.burst_id, frames=tagged, camera_info=info)
+        info = CameraInfo(header=last, width=self._camera_info.width,
+                          height=self._camera_info.height,
+                          distortion_model=self._camera_info.distortion_model,
+                          d=self._camera_info.d, k=self._camera_info.k,
+                          r=self._camera_info.r, p=self._camera_info.p)
+        by_led = sorted(tagged, key=lambda f: f.led_index)  # Burst.msg: frames in LED order
+        burst = Burst(header=last, burst_id=result.burst_id, frames=by_led, camera_info=info)
         if result.dark is not None:
             burst.has_dark_frame = True
-            burst.dark_frame = self._tagged(result.dark, result.burst_id, count)
+            burst.dark_frame = self._tagged(result.dark, result.burst_id, frame_id)
         if publish:
             self._pub_info.publish(info)
             self._pub_burst.publish(burst)
+            self._counters.last_publish_ms = (time.perf_counter() - start) * 1e3
+            self._publish_ms.append(self._counters.last_publish_ms)
         return burst
 
     # ------------------------------------------------------------------ diagnostics
+    def _on_diagnostics_timer(self) -> None:
+        if self._port_vanished():
+            assert self._board is not None
+            self._board_lost(f"port {self._board.port} vanished")  # publishes diagnostics
+            return
+        self._publish_diagnostics()
+
     def _publish_diagnostics(self) -> None:
-        c = self._counters
-        status = DiagnosticStatus(
-            name=f"{self.get_name()}: bursts", hardware_id=str(self.get_parameter("port").value))
-        status.level = DiagnosticStatus.OK if not c.last_error else DiagnosticStatus.WARN
-        status.message = "capturing" if not c.last_error else f"last error: {c.last_error}"
-        status.values = [KeyValue(key="bursts_ok", value=str(c.ok)),
-                         KeyValue(key="bursts_failed", value=str(c.failed)),
-                         KeyValue(key="last_burst_ms", value=f"{c.last_burst_ms:.1f}"),
-                         KeyValue(key="last_error", value=c.last_error)]
-        array = DiagnosticArray(status=[status])
+        array = DiagnosticArray(status=[self._board_status(), self._camera_status(),
+                                        self._burst_status()])
         array.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(array)
+
+    def _board_status(self) -> DiagnosticStatus:
+        assert self._board is not None
+        c, state = self._counters, self._board_state
+        status = DiagnosticStatus(name=f"{self.get_name()}: board",
+                                  hardware_id=self._board.port)
+        if state is BoardState.CONNECTED:
+            status.level = DiagnosticStatus.OK
+            status.message = f"connected ({self._firmware})"
+        else:
+            status.level = (DiagnosticStatus.ERROR if state is BoardState.DISCONNECTED
+                            else DiagnosticStatus.WARN)
+            wait = max(0.0, self._next_attempt - time.monotonic())
+            status.message = (f"{state.value}: {c.board_error}; next attempt in "
+                              f"{wait:.1f} s")
+        status.values = [
+            KeyValue(key="state", value=state.value),
+            KeyValue(key="port", value=self._board.port),
+            KeyValue(key="firmware", value=self._firmware),
+            KeyValue(key="resends", value=str(self._board.resends)),
+            KeyValue(key="disconnects", value=str(c.disconnects)),
+            KeyValue(key="reconnects", value=str(c.reconnects)),
+            KeyValue(key="reconnect_attempts", value=str(c.reconnect_attempts)),
+            KeyValue(key="last_board_error", value=c.board_error),
+        ]
+        return status
+
+    def _camera_status(self) -> DiagnosticStatus:
+        camera = self._camera
+        assert camera is not None
+        backend = str(self._param("camera"))
+        device = {CameraBackend.V4L2.value: str(self._param("camera_device")),
+                  CameraBackend.FOLDER.value: str(self._param("camera_folder"))}.get(backend, "")
+        status = DiagnosticStatus(name=f"{self.get_name()}: camera",
+                                  hardware_id=device or backend)
+        c = self._counters
+        camera_failed_last = c.last_burst_failed and c.camera_error == c.last_error
+        status.level = DiagnosticStatus.WARN if camera_failed_last else DiagnosticStatus.OK
+        status.message = (f"last burst failed at the camera: {c.camera_error}"
+                          if camera_failed_last else "ok")
+        refused = getattr(camera, "refused_settings", [])
+        status.values = [
+            KeyValue(key="backend", value=backend),
+            KeyValue(key="device", value=device),
+            KeyValue(key="size", value=f"{camera.width}x{camera.height}"),
+            KeyValue(key="encoding", value=camera.encoding),
+            KeyValue(key="frames", value=str(getattr(camera, "frames_grabbed", ""))),
+            KeyValue(key="refused_settings", value=", ".join(refused)),
+            KeyValue(key="last_camera_error", value=c.camera_error),
+        ]
+        return status
+
+    def _burst_status(self) -> DiagnosticStatus:
+        c = self._counters
+        status = DiagnosticStatus(name=f"{self.get_name()}: bursts",
+                                  hardware_id=str(self._param("port")))
+        status.level = DiagnosticStatus.WARN if c.last_burst_failed else DiagnosticStatus.OK
+        status.message = f"last burst failed: {c.last_error}" if c.last_burst_failed else "ok"
+
+        def stats(values: collections.deque[float]) -> tuple[str, str]:
+            if not values:
+                return "", ""
+            return f"{statistics.median(values):.2f}", f"{max(values):.2f}"
+
+        burst_median, burst_max = stats(self._burst_ms)
+        publish_median, publish_max = stats(self._publish_ms)
+        status.values = [
+            KeyValue(key="bursts_ok", value=str(c.ok)),
+            KeyValue(key="bursts_failed", value=str(c.failed)),
+            KeyValue(key="last_error", value=c.last_error),
+            KeyValue(key="last_burst_ms", value=f"{c.last_burst_ms:.1f}"),
+            KeyValue(key="burst_ms_median", value=burst_median),
+            KeyValue(key="burst_ms_max", value=burst_max),
+            KeyValue(key="last_publish_ms", value=f"{c.last_publish_ms:.2f}"),
+            KeyValue(key="publish_ms_median", value=publish_median),
+            KeyValue(key="publish_ms_max", value=publish_max),
+            KeyValue(key="timing_window", value=str(len(self._publish_ms))),
+        ]
+        return status
+
+
+class _WrongBoardError(BoardError):
+    """The board answers but does not fit the configuration (too few LEDs)."""
 
 
 def main(args: list[str] | None = None) -> int:

@@ -129,6 +129,7 @@ class LedBoard:
         self._serial: serial.Serial | None = None
         self._framer = LineFramer(REPLY_SIGIL)
         self._seq = 0
+        self._acknowledged: int | None = None
         self.resends = 0
         """Number of resends so far (diagnostics)."""
 
@@ -139,6 +140,12 @@ class LedBoard:
     @property
     def is_open(self) -> bool:
         return self._serial is not None
+
+    @property
+    def acknowledged_mask(self) -> int | None:
+        """The LED mask the board last acknowledged (``set_leds``/``all_off``); None when
+        unknown (not open, just opened, or a switch failed)."""
+        return self._acknowledged
 
     def open(self) -> None:
         """Open the port. Raises ``BoardNotFoundError`` if it does not exist."""
@@ -177,6 +184,7 @@ class LedBoard:
     def close(self) -> None:
         """Close the port. Safe to call twice; never raises on a vanished port."""
         ser, self._serial = self._serial, None
+        self._acknowledged = None
         if ser is not None:
             try:
                 ser.close()
@@ -224,8 +232,10 @@ class LedBoard:
         Raises ``BoardProtocolError`` if the acknowledged mask differs from ``mask``.
         """
         format_mask(mask)  # ValueError on a programming error
+        self._acknowledged = None
         reply = self._transact(Command.LEDS, (mask,))
         acked = self._single_mask(reply)
+        self._acknowledged = acked
         if acked != mask:
             raise BoardProtocolError(
                 f"board lit LED mask {format_mask(acked)} instead of {format_mask(mask)}"
@@ -234,7 +244,9 @@ class LedBoard:
 
     def all_off(self) -> None:
         """Switch every LED off (acknowledged mask must be 0)."""
+        self._acknowledged = None
         acked = self._single_mask(self._transact(Command.OFF))
+        self._acknowledged = acked
         if acked != 0:
             raise BoardProtocolError(f"board reports LED mask {format_mask(acked)} after OFF")
 
