@@ -98,3 +98,53 @@ def test_bad_shapes_raise() -> None:
         enhance_ridges(np.zeros((H, W)))
     with pytest.raises(FingerpsReconError, match="mask"):
         enhance_ridges(_ridges(), mask=np.ones((H, W + 1), dtype=bool))
+
+
+def _reference(normals: np.ndarray, w: int, k: float, mask: np.ndarray | None) -> np.ndarray:
+    """Eq. 12 written plainly in float64 over the whole image (the slow reference)."""
+    src = np.array(normals, dtype=np.float64)
+    if mask is not None:
+        src[~mask] = 0
+    src[~np.all(np.isfinite(src), axis=2)] = 0
+    r = w // 2
+    padded = np.pad(src, ((r, r), (r, r), (0, 0)))
+    patch_sum = np.zeros_like(src)
+    for dv in range(w):
+        for du in range(w):
+            patch_sum += padded[dv : dv + src.shape[0], du : du + src.shape[1]]
+
+    def unit(v: np.ndarray) -> np.ndarray:
+        norm = np.linalg.norm(v, axis=-1, keepdims=True)
+        return np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
+
+    mean_dir = unit(patch_sum)
+    mean_dir = np.where(np.any(mean_dir != 0, axis=2, keepdims=True), mean_dir, src)
+    out = unit(src + k * (src - mean_dir))
+    out[~np.any(src != 0, axis=2)] = 0
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize(("w", "k"), [(7, 2.5), (3, 1.0), (9, 0.0)])
+@pytest.mark.parametrize("masked", [False, True])
+def test_matches_the_plain_formula(dtype: type, w: int, k: float, masked: bool) -> None:
+    rng = np.random.default_rng(1)
+    n = _ridges() + 0.2 * rng.normal(size=(H, W, 3))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[3, 4] = np.nan  # no normal
+    n[7, 8] = 0.0  # no normal
+    n[20, 30:40] = [0.0, 0.0, 0.0]
+    mask = None
+    if masked:
+        v, u = np.mgrid[0:H, 0:W]
+        mask = np.hypot(u - 40, v - 15) < 22  # touches the image's top and right edges
+    n = n.astype(dtype)
+    got = enhance_ridges(n, w=w, k=k, mask=mask)
+    assert got.dtype == dtype
+    expected = _reference(n, w, k, mask)
+    np.testing.assert_allclose(got, expected, atol=2e-6 if dtype == np.float32 else 1e-12)
+
+
+def test_empty_mask_gives_zeros() -> None:
+    out = enhance_ridges(_ridges(), mask=np.zeros((H, W), dtype=bool))
+    assert out.shape == (H, W, 3) and not out.any()

@@ -22,12 +22,12 @@ D = nz - nx x_n + ny y_n = -(n_optical . r) > 0 for a surface facing the camera:
     dz~/du = nx / (fx D),        dz~/dv = -(ny + s nx / fx) / (fy D).
 
 D / (|n| |r|) is the cosine between the normal and the direction towards the camera, clamped
-from below by ``min_nz`` as nz is in the orthographic case. Far from the optical axis
+from below by ``min_nz`` as nz is in the orthographic case. Near the optical axis
 (x_n, y_n -> 0) this is the orthographic slope divided by the depth. Log-depth is fixed up to
 one additive constant per connected component, i.e. depth up to a scale, which the working
 distance fixes (the geometric mean of the depth over each component is the working distance).
 
-The equations
+Least squares
 -------------
 Both cases give per-pixel steps (du, dv) of the unknown (height in pixels, or log-depth) per
 column and per row. Every pair of 4-neighbours that are both inside the mask is one equation
@@ -59,11 +59,18 @@ gathers.
 ``FAST`` (the default): the whole mask at once on its bounding box (the box's sides rounded
 up to FFT-friendly lengths), in float32, with the Laplacian applied as a 4-neighbour stencil
 (``cv2.filter2D``) instead of a sparse matrix, to a relative residual of ``tol`` (default
-``FAST_TOL`` = 1e-5). Per iteration: one stencil product and one DCT pair of the box. On the
-simulated finger it takes 5 iterations (~10 ms) and differs from ``EXACT`` by ~1e-6 of the
-height span (measurements in ``bench/bench_recon_speed.py``), orders of magnitude below the
-error against the true surface. If it has not converged after ``min(max_iter,
-FAST_MAX_ITER)`` iterations (the masks ``EXACT`` solves directly) it falls back to ``EXACT``.
+``FAST_TOL`` = 1e-4). The mean steps (a tilted plane, which satisfies every edge equation
+exactly) are taken out first and added back at the end, so a plane costs no iteration and the
+Frankot–Chellappa start is closer. Per iteration: one stencil product and one DCT pair of the
+box. On the simulated finger (bounding box 432 x 459, padded to 432 x 480) it takes 4
+iterations after the start, ~20 ms on the busy two-core machine (EXACT: 130-160 ms; about
+8 ms of it are the 5 DCT pairs), and differs from ``EXACT`` by ~0.03 um RMS (heights
+spanning 5 mm), far below the error against the true surface (~1 um from the true normals
+with the perspective model, 100-200 um with the orthographic one or from Lambertian
+normals); measurements in ``bench/bench_recon_speed.py``. A looser ``tol`` = 1e-3 saves
+one DCT pair and still differs by only ~0.2 um RMS. If it has not converged after
+``min(max_iter, FAST_MAX_ITER)`` iterations (the comb-like masks ``EXACT`` solves directly)
+it falls back to ``EXACT``.
 
 Each component is given zero mean height (its offset is not observable), so the whole result
 has zero mean inside the mask.
@@ -89,14 +96,16 @@ from .errors import FingerpsReconError
 _SMALL_COMPONENT = 2048
 
 #: Default relative residual of the FAST solver.
-FAST_TOL = 1e-5
+FAST_TOL = 1e-4
 #: Iteration limit of the FAST solver before it falls back to the EXACT one.
 FAST_MAX_ITER = 30
 #: Default relative residual of the EXACT solver.
 EXACT_TOL = 1e-6
 
-# Threads for the DCTs of the FAST solver (the machine has two cores).
-_FFT_WORKERS = 2
+# Threads for the DCTs of the FAST solver. Two (the machine's cores) gained nothing inside the
+# solver: between DCTs pocketfft's second thread sleeps, and waking it cost about what it
+# saved on a 432 x 480 DCT (~0.8 ms); one thread leaves the other core to the rest of the node.
+_FFT_WORKERS = 1
 _CROSS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=np.float32)
 
 
@@ -313,12 +322,20 @@ def _slopes(
 def _components_f32(
     normals: np.ndarray, mask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """nx, ny, nz (float32, not normalised), |n| and the usable pixels (mask, finite, != 0)."""
-    n = normals.astype(np.float32, copy=False)
-    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
-    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+    """nx, ny, nz (float32 planes, not normalised), |n| and the usable pixels.
+
+    Usable: inside the mask, finite and non-zero.
+    """
+    if normals.dtype != np.float32:
+        normals = normals.astype(np.float32)
+    nx, ny, nz = cv2.split(normals)  # contiguous planes
+    norm = nx * nx
+    norm += ny * ny
+    norm += nz * nz
+    np.sqrt(norm, out=norm)
     with np.errstate(invalid="ignore"):
-        usable = mask & (norm > 0) & (norm < np.inf)  # NaN compares False
+        usable = (norm > 0) & (norm < np.inf)  # NaN compares False
+    usable &= mask
     return nx, ny, nz, norm, usable
 
 
@@ -327,12 +344,18 @@ def _slopes_f32(
 ) -> tuple[np.ndarray, np.ndarray]:
     """As :func:`_slopes` in float32: -nx / max(nz, min_nz |n|) needs no normalisation."""
     nx, ny, nz, norm, usable = _components_f32(normals, mask)
-    den = np.maximum(nz, np.float32(min_nz) * norm)
-    den[~usable] = 1.0
-    du = np.where(usable, -nx, 0.0).astype(np.float32, copy=False)
-    dv = np.where(usable, ny, 0.0).astype(np.float32, copy=False)
-    du /= den
-    dv /= den
+    norm *= np.float32(min_nz)
+    np.maximum(nz, norm, out=norm)
+    return _divided(-nx, ny, norm, usable)
+
+
+def _divided(
+    num_u: np.ndarray, num_v: np.ndarray, den: np.ndarray, usable: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """num_u / den and num_v / den where usable, else 0 (float32)."""
+    inv = np.divide(np.float32(1.0), den, out=np.zeros_like(den), where=usable)
+    du = np.multiply(num_u, inv, out=np.zeros_like(inv), where=usable)
+    dv = np.multiply(num_v, inv, out=inv, where=usable)
     return du, dv
 
 
@@ -351,22 +374,24 @@ def _log_depth_steps(
     fx, s, cx = (float(c) for c in camera_matrix[0])
     fy, cy = float(camera_matrix[1, 1]), float(camera_matrix[1, 2])
     h, w = mask.shape
-    y_n = ((np.arange(h, dtype=np.float64) + origin[0] - cy) / fy)[:, None]
-    x_n = (np.arange(w, dtype=np.float64)[None, :] + origin[1] - cx - s * y_n) / fx
+    y_n = ((np.arange(h) + origin[0] - cy) / fy)[:, None]  # (h, 1)
+    x_n = (np.arange(w) + origin[1] - cx)[None, :] / fx  # (1, w), or (h, w) with skew
+    if s != 0.0:
+        x_n = x_n - (s / fx) * y_n
     y_n = y_n.astype(np.float32)
     x_n = x_n.astype(np.float32)
-    ray_norm = np.sqrt(x_n * x_n + y_n * y_n + np.float32(1.0))
+    ray_norm = x_n * x_n + y_n * y_n  # (h, w)
+    ray_norm += np.float32(1.0)
+    np.sqrt(ray_norm, out=ray_norm)
     nx, ny, nz, norm, usable = _components_f32(normals, mask)
-    den = nz - nx * x_n + ny * y_n
-    np.maximum(den, np.float32(min_nz) * norm * ray_norm, out=den)
-    den[~usable] = 1.0
-    du = np.where(usable, nx, 0.0).astype(np.float32, copy=False)
-    dv = np.where(usable, ny, 0.0).astype(np.float32, copy=False)
-    if s != 0.0:
-        dv += np.float32(s / fx) * du
-    du /= den * np.float32(fx)
-    dv /= den * np.float32(-fy)
-    return du, dv
+    den = nz - nx * x_n
+    den += ny * y_n
+    norm *= np.float32(min_nz) * ray_norm
+    np.maximum(den, norm, out=den)
+    den *= np.float32(fx)
+    num_v = ny if s == 0.0 else ny + np.float32(s / fx) * nx
+    num_v *= np.float32(-fx / fy)
+    return _divided(nx, num_v, den, usable)
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -437,31 +462,66 @@ def _solve_fast(
     inside = np.zeros(shape, dtype=np.float32)
     inside[:h, :w] = mask
     labels, n_comp = _labels(mask)
+    # The mean steps are a plane, which every edge equation satisfies exactly: integrate
+    # only the rest, whose smaller values at the mask's outline the Frankot–Chellappa start
+    # (zero steps outside the mask) matches better; a tilted plane needs no iteration at all.
+    n_pix = np.count_nonzero(mask)
+    mean_du = np.float32(du.sum(dtype=np.float64) / n_pix)
+    mean_dv = np.float32(dv.sum(dtype=np.float64) / n_pix)
 
-    # b = D^T g over the edges with both ends inside; du, dv are zero outside the mask.
+    # b = D^T g over the edges with both ends inside, g = mean of the two pixels' steps less
+    # the plane's (du, dv are zero outside the mask, so g is only used on such edges).
     b = np.zeros(shape, dtype=np.float32)
-    g = (du[:, :-1] + du[:, 1:]) * np.float32(0.5)
-    g *= inside[:h, : w - 1] * inside[:h, 1:w]
+    g = du[:, :-1] + du[:, 1:]
+    g *= np.float32(0.5)
+    g -= mean_du
+    g *= inside[:h, : w - 1]
+    g *= inside[:h, 1:w]
     b[:h, 1:w] += g
     b[:h, : w - 1] -= g
-    g = (dv[:-1] + dv[1:]) * np.float32(0.5)
-    g *= inside[: h - 1, :w] * inside[1:h, :w]
+    g = dv[:-1] + dv[1:]
+    g *= np.float32(0.5)
+    g -= mean_dv
+    g *= inside[: h - 1, :w]
+    g *= inside[1:h, :w]
     b[1:h, :w] += g
     b[: h - 1, :w] -= g
     # Each component's sum of b is zero in exact arithmetic; remove the round-off.
     _subtract_component_means(b[:h, :w], mask, labels, n_comp)
+
+    x = _pcg_box(b, inside, tol=tol, max_iter=max_iter)
+    if x is None:
+        return None
+    solution = x[:h, :w]
+    solution += mean_du * np.arange(w, dtype=np.float32)
+    solution += mean_dv * np.arange(h, dtype=np.float32)[:, None]
+    _subtract_component_means(solution, mask, labels, n_comp)
+    solution[~mask] = np.nan
+    return solution
+
+
+def _pcg_box(
+    b: np.ndarray, inside: np.ndarray, *, tol: float, max_iter: int
+) -> np.ndarray | None:
+    """Solve A x = b for the masked graph Laplacian A of ``inside`` on its whole box.
+
+    Conjugate gradients preconditioned by the box's Neumann Laplacian (DCT-II), all float32,
+    A applied as a 4-neighbour stencil. ``b`` and the result are zero outside the mask.
+    Returns None if the relative residual is above ``tol`` after ``max_iter`` iterations.
+    """
+    shape = b.shape
+    x = np.zeros(shape, dtype=np.float32)
     b_norm2 = float(np.vdot(b, b))
     if b_norm2 == 0.0:
-        return np.where(mask, np.float32(0.0), np.float32(np.nan))
-
+        return x
     degree = cv2.filter2D(inside, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
     degree *= inside
 
-    def laplacian(x: np.ndarray) -> np.ndarray:
-        ax = cv2.filter2D(x, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
-        ax *= inside
-        np.subtract(degree * x, ax, out=ax)
-        return ax
+    def laplacian(v: np.ndarray) -> np.ndarray:
+        av = cv2.filter2D(v, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
+        av *= inside
+        np.subtract(degree * v, av, out=av)
+        return av
 
     # Eigenvalues of the rectangle's 4-neighbour Neumann Laplacian in the DCT-II basis.
     ev = (2.0 - 2.0 * np.cos(np.pi * np.arange(shape[0]) / shape[0]))[:, None] + (
@@ -474,37 +534,28 @@ def _solve_fast(
     def precondition(res: np.ndarray) -> np.ndarray:
         spec = scipy.fft.dctn(res, type=2, norm="ortho", workers=_FFT_WORKERS)
         spec *= inv_ev
-        z = scipy.fft.idctn(spec, type=2, norm="ortho", workers=_FFT_WORKERS)
+        z = scipy.fft.idctn(spec, type=2, norm="ortho", workers=_FFT_WORKERS, overwrite_x=True)
         z *= inside
         return z
 
-    # Conjugate gradients from x = 0: the first step is Frankot–Chellappa on the box.
+    # From x = 0 the first step is Frankot–Chellappa on the box (zero steps outside).
     limit = tol * tol * b_norm2
-    x = np.zeros(shape, dtype=np.float32)
     r = b
     z = precondition(r)
     d = z
     rz = float(np.vdot(r, z))
-    converged = False
     for _ in range(max_iter):
         ad = laplacian(d)
-        alpha = np.float32(rz / float(np.vdot(d, ad)))
-        x += alpha * d
-        r -= alpha * ad
+        alpha = rz / float(np.vdot(d, ad))
+        x = cv2.scaleAdd(d, alpha, x)  # x + alpha d, one pass
+        r = cv2.scaleAdd(ad, -alpha, r)
         if float(np.vdot(r, r)) <= limit:
-            converged = True
-            break
+            return x
         z = precondition(r)
         rz_new = float(np.vdot(r, z))
-        d *= np.float32(rz_new / rz)
-        d += z
+        d = cv2.scaleAdd(d, rz_new / rz, z)
         rz = rz_new
-    if not converged:
-        return None
-    solution = x[:h, :w]
-    _subtract_component_means(solution, mask, labels, n_comp)
-    solution[~mask] = np.nan
-    return solution
+    return None
 
 
 def _labels(mask: np.ndarray) -> tuple[np.ndarray | None, int]:
@@ -518,14 +569,18 @@ def _labels(mask: np.ndarray) -> tuple[np.ndarray | None, int]:
 def _subtract_component_means(
     values: np.ndarray, mask: np.ndarray, labels: np.ndarray | None, n_comp: int
 ) -> None:
-    """Give ``values`` (in place) zero mean over the mask pixels of each component."""
-    inner = values[mask]
+    """Give ``values`` (in place) zero mean over the mask pixels of each component.
+
+    Values outside the mask are left as they are.
+    """
     if labels is None:
-        inner -= inner.mean(dtype=np.float64)
-    else:
-        sums = np.bincount(labels, weights=inner, minlength=n_comp)
-        counts = np.bincount(labels, minlength=n_comp)
-        inner -= (sums / counts).astype(np.float32)[labels]
+        total = values.sum(where=mask, dtype=np.float64)
+        values -= np.float32(total / np.count_nonzero(mask)) * mask
+        return
+    inner = values[mask]
+    sums = np.bincount(labels, weights=inner, minlength=n_comp)
+    counts = np.bincount(labels, minlength=n_comp)
+    inner -= (sums / counts).astype(np.float32)[labels]
     values[mask] = inner
 
 
@@ -749,17 +804,16 @@ def depth_to_points(
     h, w = depth.shape
     with np.errstate(invalid="ignore"):
         keep = m & (depth > 0) & (depth < np.inf)  # NaN compares False
-    v, u = np.nonzero(keep)
-    z = depth[keep].astype(np.float32, copy=False)
-    y_row = ((np.arange(h) - cy) / fy).astype(np.float32)  # y_n per image row
-    x_col = ((np.arange(w) - cx) / fx).astype(np.float32)  # x_n per column without skew
-    points = np.empty((z.size, 3), dtype=np.float32)
-    y_n = y_row[v]
-    x_n = x_col[u]
+    index = np.flatnonzero(keep)
+    z = depth.astype(np.float32, copy=False)
+    y_row = ((np.arange(h) - cy) / fy).astype(np.float32)[:, None]  # y_n per image row
+    x_col = ((np.arange(w) - cx) / fx).astype(np.float32)  # x_n per column, without skew
+    points = np.empty((index.size, 3), dtype=np.float32)
+    y = z * y_row  # whole-image planes, then one gather each: cheaper than gathering u, v
+    points[:, 1] = y.ravel()[index]
+    x = z * x_col
     if s != 0.0:
-        x_n -= np.float32(s / fx) * y_n
-    np.multiply(x_n, z, out=points[:, 0])
-    np.multiply(y_n, z, out=points[:, 1])
-    points[:, 2] = z
-    index = v * w + u
+        x -= np.float32(s / fx) * y
+    points[:, 0] = x.ravel()[index]
+    points[:, 2] = z.ravel()[index]
     return points, index.astype(np.int64, copy=False)

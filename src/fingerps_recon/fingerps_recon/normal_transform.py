@@ -52,30 +52,70 @@ def enhance_ridges(
     if not (np.isfinite(k) and k >= 0):
         raise FingerpsReconError(f"k must be a finite number >= 0, got {k!r}")
     dtype = np.float64 if n.dtype == np.float64 else np.float32
-    src = n.astype(dtype)  # always a copy
+    h, w_img = n.shape[:2]
+    enhanced = np.zeros((h, w_img, 3), dtype=dtype)
     if mask is not None:
         m = np.asarray(mask)
         if m.shape != n.shape[:2] or m.dtype != bool:
             raise FingerpsReconError(
                 f"mask must be a bool array of shape {n.shape[:2]}, got {m.shape} {m.dtype}"
             )
-        src[~m] = 0
-    src[~np.all(np.isfinite(src), axis=2)] = 0
+        # Outside the mask's bounding box every normal is zero and stays zero; the box
+        # filter's zero border at the box's sides sees the same zeros.
+        box = _bounding_box(m)
+        if box is None:
+            return enhanced
+        m = m[box]
+    else:
+        box = (slice(0, h), slice(0, w_img))
+        m = None
+    x, y, z = cv2.split(np.ascontiguousarray(n[box], dtype=dtype))  # new planes
+    # Pixels without a normal (outside the mask, zero or not finite) are zero: they are no
+    # neighbours (normalised convolution: the sum is normalised to a direction, so no
+    # division by the count is needed) and give zero output.
+    with np.errstate(invalid="ignore"):
+        finite = np.abs(x + y + z) < np.inf  # False for NaN and inf
+    keep = finite if m is None else finite & m
+    if not keep.all():
+        for c in (x, y, z):
+            c *= keep
+        if not finite.all():
+            for c in (x, y, z):
+                c[~finite] = 0  # NaN * 0 is NaN
+    has_normal = (x != 0) | (y != 0) | (z != 0)
 
-    patch_sum = cv2.boxFilter(
-        src, -1, (int(w), int(w)), normalize=False, borderType=cv2.BORDER_CONSTANT
+    size = (int(w), int(w))
+    sx, sy, sz = (
+        cv2.boxFilter(c, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        for c in (x, y, z)
     )
-    mean_dir = _normalize(patch_sum)
-    has_mean = np.any(mean_dir != 0, axis=2, keepdims=True)
-    # Where no neighbour has a normal, leave the normal unchanged.
-    mean_dir = np.where(has_mean, mean_dir, src)
-    enhanced = src + dtype(k) * (src - mean_dir)
-    enhanced = _normalize(enhanced)
-    enhanced[~np.any(src != 0, axis=2)] = 0
+    # n' = (1 + k) n - k s / |s|; where no neighbour has a normal (s = 0) the mean direction
+    # is n itself, so n' = n up to the scale (1 + k), which the normalisation removes.
+    gain = dtype(k)
+    inv_s = _inverse_norm(sx, sy, sz)
+    inv_s *= gain
+    one_k = dtype(1.0 + k)
+    ex = one_k * x - inv_s * sx
+    ey = one_k * y - inv_s * sy
+    ez = one_k * z - inv_s * sz
+    inv_e = _inverse_norm(ex, ey, ez)
+    inv_e[~has_normal] = 0  # no normal in, none out
+    for c in (ex, ey, ez):
+        c *= inv_e
+    enhanced[box] = cv2.merge((ex, ey, ez))
     return enhanced
 
 
-def _normalize(v: np.ndarray) -> np.ndarray:
-    """Unit vectors along the last axis; zero vectors stay zero."""
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    return np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
+def _inverse_norm(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """1 / |(x, y, z)| per pixel, 0 where the vector is zero."""
+    norm = np.sqrt(x * x + y * y + z * z)
+    return np.divide(1, norm, out=np.zeros_like(norm), where=norm > 0)
+
+
+def _bounding_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """Slices of the smallest rectangle holding every mask pixel; None for an empty mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)

@@ -1,0 +1,344 @@
+"""Reconstruction speed stage by stage: one simulated 659x493 burst of 7 images -> points.
+
+Usage (tools/ros_env.sh sourced): ``python bench/bench_recon_speed.py [--repeats N]``.
+Prints, for every stage, the median and the spread (interquartile range and min-max) over
+N runs (default 15, at least 7) after one warm-up run, then the integration's accuracy
+against the simulated rig's true depth. ``run()`` returns the medians as
+``recon.ms.<stage>`` (``recon.ms.lambert_total``, and ``recon.ms.hk_solve`` and
+``recon.ms.hk_total`` when ``fingerps_recon.hk_solver.solve_hk`` exists) and the accuracy
+figures as ``recon.um.<name>``.
+
+Stages, in the order of the Lambertian path (burst -> point cloud), all on the standard
+simulated rig (``fingerps_driver.simulation``), with the white-target flat field:
+
+- flat_field: ``apply_flat_field`` of the uint8 burst (K x H x W float32 division).
+- mask: ``finger_mask`` (brightest image, a percentile, opening, closing, components).
+- lambertian: ``solve_lambertian`` with distant lights; lambertian_near: the same with
+  per-pixel (K, H, W, 3) near-light directions (not part of the path).
+- transform: ``enhance_ridges`` (Eq. 12, w = 7, k = 2.5).
+- integration_fast / integration_exact: ``integrate_normals`` (orthographic) FAST / EXACT;
+  integration_perspective(_exact): ``integrate_normals_perspective``.
+- cloud: ``height_to_distance`` + ``depth_to_points``.
+- lambert_total: flat_field + mask + lambertian + transform + integration_fast + cloud run
+  back to back; lambert_total_perspective: the same with the perspective integration.
+- hk_solve / hk_total: ``solve_hk`` (10 iterations) from the Lambertian start, and the
+  HK path (Lambertian path with the HK solve after the Lambertian one).
+
+Where the time goes. Measured on the two-core machine while other work kept its load average
+at 1.5-3.5, so every figure moves by a factor of up to ~2 between runs; compare medians
+taken in the same run (minima are the best guide to the uncontended cost). Lambertian path,
+medians (minima) in ms: flat field 5 (4), mask 7 (6), Lambertian 8-15 (8), transform 6 (5),
+FAST integration 20-28 (19), cloud 2 (1.5): 60-80 (50) in all, against ~300 before this
+change (Lambertian 50-75, masked PCG integration 130-160, ridge transform 60-85, cloud 4;
+flat field and mask unchanged). The 30 ms target is not met; what is left:
+
+- integration (~2/5): 5 DCT pairs of the 432 x 480 box (~0.8 ms per DCT; the Frankot–Chellappa
+  start and 4 conjugate-gradient iterations to the relative residual 1e-4 the analytic tests
+  need), ~1 ms of stencil and vector passes per iteration and ~5 ms of set-up (slopes,
+  right-hand side, components, means). ``tol=1e-3`` drops one DCT pair (~2-3 ms) and changes
+  the finger's depth by ~0.2 um RMS;
+- flat field and mask (~1/5, other modules): full-frame passes over the whole burst;
+- Lambertian: the burst's float32 copy, the usable-light tests and light codes, one 3 x 7
+  product (einsum: OpenBLAS's threaded sgemm with a 3-row operand was 5-10x slower and
+  erratic with the other core busy) and the ~10 000 margin pixels with shadowed lights;
+- transform: three box filters and two normalisations on the mask's box.
+
+Every stage is float32 on the mask's bounding box (432 x 459 of 659 x 493). BLAS does only
+the few 7 x 3 pseudo-inverses here (the products are einsum, the rest OpenCV, pocketfft and
+numpy loops), so OPENBLAS_CORETYPE, which selects an older, slower OpenBLAS kernel on the
+machines that set it (see the environment notes), should change little; it was unset where
+these figures were taken (the table's header prints it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fingerps_calib.flat_field_calibration import flat_field_maps
+from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_recon.finger_mask import finger_mask
+from fingerps_recon.flat_field import apply_flat_field
+from fingerps_recon.frames import optical_to_ps
+from fingerps_recon.integration import (
+    IntegrationMethod,
+    depth_to_points,
+    height_to_distance,
+    integrate_normals,
+    integrate_normals_perspective,
+)
+from fingerps_recon.lambertian import solve_lambertian
+from fingerps_recon.normal_transform import enhance_ridges
+
+RUNS = 15
+MIN_RUNS = 7
+WORKING_DISTANCE_M = 0.09
+SHADOW_FRACTION = 0.02
+MASK_THRESHOLD = 0.15
+HK_ITERATIONS = 10
+
+
+@dataclass(frozen=True)
+class StageTiming:
+    """Wall-clock times of one stage over the repeated runs, milliseconds."""
+
+    stage: str
+    times_ms: tuple[float, ...]
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.times_ms))
+
+    @property
+    def quartiles(self) -> tuple[float, float]:
+        q1, q3 = np.percentile(self.times_ms, [25, 75])
+        return float(q1), float(q3)
+
+
+@dataclass(frozen=True)
+class SpeedReport:
+    """What :func:`measure` found: stage timings, accuracy figures and notes."""
+
+    timings: tuple[StageTiming, ...]
+    accuracy_um: dict[str, float]
+    notes: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class _Burst:
+    images: np.ndarray        # (K, H, W) uint8
+    portions: np.ndarray      # (K, H, W) float32
+    intensities: np.ndarray   # (K,)
+    lights_ps: np.ndarray     # (K, 3)
+    lights_near_ps: np.ndarray  # (K, H, W, 3) float32, from the true surface points
+    camera_matrix: np.ndarray
+    full_scale: float
+
+
+def _burst(rig: SimulatedRig) -> _Burst:
+    k = rig.led_count
+    images = np.stack([rig.render(Scene.FINGER, [i], rng=np.random.default_rng(10 + i))
+                       for i in range(k)])
+    white = np.stack([rig.render(Scene.WHITE_TARGET, [i], rng=np.random.default_rng(200 + i))
+                      for i in range(k)])
+    white_dark = rig.render(Scene.WHITE_TARGET, [], rng=np.random.default_rng(199))
+    flat = flat_field_maps(white, dark=white_dark)
+    points = np.nan_to_num(rig.finger_points_optical(), nan=WORKING_DISTANCE_M)
+    near = np.stack([optical_to_ps(rig.leds.directions_optical(points, i)) for i in range(k)])
+    return _Burst(images=images, portions=flat.portions, intensities=flat.relative_intensities,
+                  lights_ps=rig.light_directions_ps(), lights_near_ps=near.astype(np.float32),
+                  camera_matrix=np.asarray(rig.camera_matrix), full_scale=rig.max_value())
+
+
+def _time(fn: Callable[[], object], repeats: int) -> tuple[object, tuple[float, ...]]:
+    result = fn()  # warm-up (caches, allocator, FFT plans)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        times.append((time.perf_counter() - start) * 1e3)
+    return result, tuple(times)
+
+
+def _solve_hk() -> Callable | None:
+    try:
+        module = importlib.import_module("fingerps_recon.hk_solver")
+    except ImportError:
+        return None
+    return getattr(module, "solve_hk", None)
+
+
+def measure(repeats: int = RUNS) -> SpeedReport:
+    """Time every stage ``repeats`` times on one simulated burst (see the module docstring)."""
+    if repeats < MIN_RUNS:
+        raise ValueError(f"repeats must be >= {MIN_RUNS} for a meaningful spread, got {repeats}")
+    rig = SimulatedRig(RigConfig())
+    burst = _burst(rig)
+    truth = rig.finger_truth()
+    k_mat = burst.camera_matrix
+    pixel_size_m = WORKING_DISTANCE_M / float(k_mat[0, 0])
+    shadow_level = SHADOW_FRACTION * burst.full_scale
+    timings: list[StageTiming] = []
+    notes: list[str] = []
+
+    def stage(name: str, fn: Callable[[], object]) -> object:
+        result, times = _time(fn, repeats)
+        timings.append(StageTiming(name, times))
+        return result
+
+    stack = stage("flat_field", lambda: apply_flat_field(burst.images, burst.portions))
+    saturation_level = float(stack.max()) + 1.0  # as the pipeline: nothing saturated here
+    mask = stage("mask", lambda: finger_mask(stack, threshold=MASK_THRESHOLD))
+
+    def lambertian(lights: np.ndarray):
+        return solve_lambertian(stack, lights, intensities=burst.intensities, mask=mask,
+                                shadow_level=shadow_level, saturation_level=saturation_level)
+
+    lam = stage("lambertian", lambda: lambertian(burst.lights_ps))
+    stage("lambertian_near", lambda: lambertian(burst.lights_near_ps))
+    valid = lam.valid & mask
+    normals = lam.normals
+    stage("transform", lambda: enhance_ridges(normals, mask=valid))
+
+    def orthographic(normals: np.ndarray, valid: np.ndarray, method: IntegrationMethod):
+        height = integrate_normals(normals, mask=valid, pixel_size_m=pixel_size_m,
+                                   method=method)
+        return height_to_distance(height, working_distance_m=WORKING_DISTANCE_M)
+
+    def perspective(normals: np.ndarray, valid: np.ndarray, method: IntegrationMethod):
+        return integrate_normals_perspective(normals, mask=valid, camera_matrix=k_mat,
+                                             working_distance_m=WORKING_DISTANCE_M,
+                                             method=method)
+
+    depth_fast = stage("integration_fast",
+                       lambda: orthographic(normals, valid, IntegrationMethod.FAST))
+    depth_exact = stage("integration_exact",
+                        lambda: orthographic(normals, valid, IntegrationMethod.EXACT))
+    depth_persp = stage("integration_perspective",
+                        lambda: perspective(normals, valid, IntegrationMethod.FAST))
+    depth_persp_exact = stage("integration_perspective_exact",
+                              lambda: perspective(normals, valid, IntegrationMethod.EXACT))
+    stage("cloud", lambda: depth_to_points(depth_fast, valid, camera_matrix=k_mat))
+
+    def lambert_path(integrate: Callable) -> object:
+        corrected = apply_flat_field(burst.images, burst.portions)
+        m = finger_mask(corrected, threshold=MASK_THRESHOLD)
+        res = solve_lambertian(corrected, burst.lights_ps, intensities=burst.intensities,
+                               mask=m, shadow_level=shadow_level,
+                               saturation_level=float(corrected.max()) + 1.0)
+        v = res.valid & m
+        enhance_ridges(res.normals, mask=v)
+        depth = integrate(res.normals, v, IntegrationMethod.FAST)
+        return depth_to_points(depth, v, camera_matrix=k_mat)
+
+    stage("lambert_total", lambda: lambert_path(orthographic))
+    stage("lambert_total_perspective", lambda: lambert_path(perspective))
+
+    solve_hk = _solve_hk()
+    if solve_hk is None:
+        notes.append("hk_solve, hk_total: skipped, fingerps_recon.hk_solver.solve_hk not found")
+    else:
+        usable = (stack > shadow_level) & (stack < saturation_level)
+
+        def hk(normals: np.ndarray, albedo: np.ndarray, valid: np.ndarray, stack=stack,
+               usable=usable):
+            return solve_hk(stack, burst.lights_ps, mask=valid, init_normals=normals,
+                            init_albedo=albedo, intensities=burst.intensities, usable=usable,
+                            iterations=HK_ITERATIONS)
+
+        def hk_path() -> object:
+            corrected = apply_flat_field(burst.images, burst.portions)
+            m = finger_mask(corrected, threshold=MASK_THRESHOLD)
+            limit = float(corrected.max()) + 1.0
+            res = solve_lambertian(corrected, burst.lights_ps, intensities=burst.intensities,
+                                   mask=m, shadow_level=shadow_level, saturation_level=limit)
+            ok = (corrected > shadow_level) & (corrected < limit)
+            out = hk(res.normals, res.albedo, res.valid & m, stack=corrected, usable=ok)
+            v = out.valid & res.valid & m
+            n = np.where(v[..., None], out.normals, 0.0).astype(np.float32)
+            enhance_ridges(n, mask=v)
+            depth = orthographic(n, v, IntegrationMethod.FAST)
+            return depth_to_points(depth, v, camera_matrix=k_mat)
+
+        try:
+            stage("hk_solve", lambda: hk(lam.normals, lam.albedo, valid))
+            stage("hk_total", hk_path)
+        except Exception as exc:  # another engineer's module, possibly mid-change
+            notes.append(f"hk_solve, hk_total: skipped, solve_hk raised {exc!r}")
+
+    accuracy = _accuracy(truth, valid, depth_fast, depth_exact, depth_persp, depth_persp_exact,
+                         normals=truth.normals_ps, camera_matrix=k_mat,
+                         pixel_size_m=pixel_size_m)
+    return SpeedReport(timings=tuple(timings), accuracy_um=accuracy, notes=tuple(notes))
+
+
+def _accuracy(truth, valid, depth_fast, depth_exact, depth_persp, depth_persp_exact, *,
+              normals, camera_matrix, pixel_size_m) -> dict[str, float]:
+    """Depth RMS errors (um) against the true depth, inside both masks.
+
+    Orthographic depths with the best offset (the height's zero level is free), perspective
+    depths with the best scale (depth from normals is known up to a scale); also from the
+    true normals, which isolates the integration from the normals' own errors.
+    """
+    both = valid & truth.mask
+    true_depth = truth.depth_m[both].astype(np.float64)
+
+    def offset_rms(depth: np.ndarray) -> float:
+        err = depth[both].astype(np.float64) - true_depth
+        return float(np.sqrt(np.mean((err - err.mean()) ** 2)) * 1e6)
+
+    def scale_rms(depth: np.ndarray) -> float:
+        d = depth[both].astype(np.float64)
+        scale = np.exp(np.mean(np.log(true_depth) - np.log(d)))
+        return float(np.sqrt(np.mean((scale * d - true_depth) ** 2)) * 1e6)
+
+    def diff_rms(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((a[both].astype(np.float64) - b[both]) ** 2)) * 1e6)
+
+    figures = {
+        "depth_rms_ortho_fast": offset_rms(depth_fast),
+        "depth_rms_ortho_exact": offset_rms(depth_exact),
+        "ortho_fast_vs_exact_rms": diff_rms(depth_fast, depth_exact),
+        "depth_rms_perspective_fast": scale_rms(depth_persp),
+        "depth_rms_perspective_exact": scale_rms(depth_persp_exact),
+        "perspective_fast_vs_exact_rms": diff_rms(depth_persp, depth_persp_exact),
+    }
+    m = truth.mask
+    for method in IntegrationMethod:
+        suffix = method.name.lower()
+        height = integrate_normals(normals, mask=m, pixel_size_m=pixel_size_m, method=method)
+        ortho = height_to_distance(height, working_distance_m=WORKING_DISTANCE_M)
+        persp = integrate_normals_perspective(normals, mask=m, camera_matrix=camera_matrix,
+                                              working_distance_m=WORKING_DISTANCE_M,
+                                              method=method)
+        figures[f"true_normals_depth_rms_ortho_{suffix}"] = offset_rms(ortho)
+        figures[f"true_normals_depth_rms_perspective_{suffix}"] = scale_rms(persp)
+    return figures
+
+
+def run(repeats: int = RUNS) -> dict[str, float]:
+    """Median stage times (``recon.ms.<stage>``) and accuracy (``recon.um.<name>``)."""
+    report = measure(repeats)
+    figures = {f"recon.ms.{t.stage}": t.median for t in report.timings}
+    figures.update({f"recon.um.{name}": value for name, value in report.accuracy_um.items()})
+    return figures
+
+
+def _print(report: SpeedReport, repeats: int) -> None:
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    coretype = os.environ.get("OPENBLAS_CORETYPE")
+    print(f"recon speed: 659x493 burst of 7, {repeats} runs each, {os.cpu_count()} cores, "
+          f"load average {load:.2f}, OPENBLAS_CORETYPE={coretype or 'unset'}")
+    print(f"  {'stage':<30} {'median':>8} {'IQR':>17} {'min-max':>17}   (ms)")
+    for t in report.timings:
+        q1, q3 = t.quartiles
+        print(f"  {t.stage:<30} {t.median:8.2f} {q1:8.2f}-{q3:<8.2f} "
+              f"{min(t.times_ms):8.2f}-{max(t.times_ms):<8.2f}")
+    for note in report.notes:
+        print(f"  note: {note}")
+    print("accuracy against the true depth (um RMS; ortho: best offset, perspective: best "
+          "scale)")
+    for name, value in report.accuracy_um.items():
+        print(f"  {name:<45} {value:10.3f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=RUNS,
+                        help=f"runs per stage, >= {MIN_RUNS} (default {RUNS})")
+    args = parser.parse_args(argv)
+    if args.repeats < MIN_RUNS:
+        parser.error(f"--repeats must be >= {MIN_RUNS}")
+    _print(measure(args.repeats), args.repeats)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
