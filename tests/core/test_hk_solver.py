@@ -1,0 +1,338 @@
+"""Tests of fingerps_recon.hk_solver on rendered HK and Lambertian scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from fingerps_recon import hk_solver
+from fingerps_recon.angular_error import angular_error_deg
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.hk_model import PhaseConvention, SkinParams, hk_reflectance
+from fingerps_recon.hk_solver import HKResult, solve_hk
+from fingerps_recon.lambertian import lambertian_shading, solve_lambertian
+
+# Seven lights around the camera at 21-26 degrees from its axis, as on the rig (PS frame).
+_AZIMUTH = np.radians([8.0, 57.0, 110.0, 160.0, 209.0, 262.0, 313.0])
+_TILT = np.radians([23.0, 25.0, 22.0, 26.0, 24.0, 21.0, 25.5])
+LIGHTS = np.stack(
+    [np.cos(_AZIMUTH) * np.sin(_TILT), np.sin(_AZIMUTH) * np.sin(_TILT), np.cos(_TILT)], axis=1
+)
+INTENSITIES = np.array([1.0, 0.93, 1.06, 0.88, 0.97, 1.04, 0.91])
+SCALE = 45.0  # the rig's A: the single-scattering term is ~10 % of the signal
+
+
+def _surface(size: int = 61, *, ridges: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (H, W, 3) of a sphere cap (PS frame), optionally with ridges, and mask."""
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    half = (size - 1) / 2
+    x, y = (u - half) / (half - 0.5), -(v - half) / (half - 0.5)
+    mask = x**2 + y**2 < 0.9
+    z = np.sqrt(np.clip(1 - x**2 - y**2, 1e-6, None))
+    gx, gy = -x / z, -y / z
+    if ridges:
+        gx = gx + 0.25 * np.cos(2 * np.pi * x / 0.25)
+    n = np.stack([-gx, -gy, np.ones_like(x)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.where(mask[..., None], n, 0.0), mask
+
+
+def _perspective_views(size: int, focal_px: float = 200.0) -> np.ndarray:
+    """(H, W, 3) unit directions towards a pinhole camera (PS frame)."""
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    half = (size - 1) / 2
+    towards = np.stack([-(u - half) / focal_px, (v - half) / focal_px, np.ones_like(u)], axis=-1)
+    return towards / np.linalg.norm(towards, axis=-1, keepdims=True)
+
+
+def _render(
+    normals: np.ndarray, mask: np.ndarray, rho: np.ndarray, *, scale: float = SCALE,
+    lights: np.ndarray = LIGHTS, views: np.ndarray | None = None,
+    params: SkinParams = SkinParams(),  # noqa: B008
+) -> np.ndarray:
+    lgt = lights[:, None, None, :] if lights.ndim == 2 else lights
+    v = np.array([0.0, 0.0, 1.0]) if views is None else views
+    image = hk_reflectance(normals, lgt, v, rho=rho, scale=scale, params=params)
+    return image * INTENSITIES[:, None, None] * mask
+
+
+def _solve(images: np.ndarray, mask: np.ndarray, **kwargs: object) -> tuple[HKResult, object]:
+    lam = solve_lambertian(images, LIGHTS, intensities=INTENSITIES, mask=mask)
+    res = solve_hk(
+        images, kwargs.pop("lights", LIGHTS), mask=lam.valid, init_normals=lam.normals,
+        init_albedo=lam.albedo, intensities=INTENSITIES, **kwargs,
+    )
+    return res, lam
+
+
+def _slopes_to_normal(p: float, q: float) -> np.ndarray:
+    n = np.array([-p, -q, 1.0])
+    return n / np.linalg.norm(n)
+
+
+def test_same_minimum_as_scipy_least_squares_per_pixel() -> None:
+    # An HK-rendered scene with 1 % noise, perspective views. The batched solver (A fitted)
+    # and scipy's least_squares per pixel, with A fixed to the batched A, started from the
+    # same Lambertian initialisation, must reach the same minimum of the same residual.
+    normals, mask = _surface()
+    rng = np.random.default_rng(1)
+    rho = rng.uniform(0.4, 0.6, mask.shape)
+    views = _perspective_views(mask.shape[0])
+    images = _render(normals, mask, rho, views=views)
+    images = images + 0.01 * rng.standard_normal(images.shape)
+    usable = images > 0
+    res, lam = _solve(images, mask, views=views, iterations=60, tol=0.0)
+    scale = res.scale
+
+    def residual(x: np.ndarray, r: int, c: int) -> np.ndarray:
+        model = INTENSITIES * hk_reflectance(
+            _slopes_to_normal(x[0], x[1]), LIGHTS, views[r, c], rho=x[2], scale=scale
+        )
+        return (images[:, r, c] - model)[usable[:, r, c]]
+
+    candidates = np.flatnonzero(res.valid & usable.all(axis=0))
+    for index in rng.choice(candidates, 50, replace=False):
+        r, c = divmod(int(index), mask.shape[1])
+        n0 = lam.normals[r, c].astype(np.float64)
+        x0 = np.array([-n0[0] / n0[2], -n0[1] / n0[2], lam.albedo[r, c]])
+        ref = least_squares(residual, x0, args=(r, c), method="lm", xtol=1e-15, ftol=1e-15,
+                            gtol=1e-15)
+        n_ref = _slopes_to_normal(ref.x[0], ref.x[1])
+        n_hk = res.normals[r, c].astype(np.float64)
+        n_hk /= np.linalg.norm(n_hk)
+        assert angular_error_deg(n_hk, n_ref) < 0.05
+        assert res.albedo[r, c] == pytest.approx(ref.x[2], rel=1e-3)
+        x_hk = np.array([-n_hk[0] / n_hk[2], -n_hk[1] / n_hk[2], float(res.albedo[r, c])])
+        cost_hk = np.sum(residual(x_hk, r, c) ** 2)
+        cost_ref = np.sum(ref.fun**2)
+        assert cost_hk == pytest.approx(cost_ref, rel=1e-6)
+
+
+@pytest.mark.parametrize("perspective", [False, True])
+def test_noise_free_sphere_recovers_normals_and_scale(perspective: bool) -> None:
+    normals, mask = _surface(ridges=False)
+    rho = np.random.default_rng(2).uniform(0.4, 0.6, mask.shape)
+    views = _perspective_views(mask.shape[0]) if perspective else None
+    images = _render(normals, mask, rho, views=views)
+    kwargs = {} if views is None else {"views": views}
+    res, lam = _solve(images, mask, iterations=40, **kwargs)
+    assert isinstance(res, HKResult)
+    err = angular_error_deg(res.normals, normals, mask=res.valid)
+    assert np.nanmax(err) < 0.05
+    # The Lambertian start was biased by the single-scattering term.
+    assert np.nanmean(angular_error_deg(lam.normals, normals, mask=res.valid)) > 1.0
+    assert res.scale == pytest.approx(SCALE, rel=1e-3)
+    np.testing.assert_allclose(res.albedo[res.valid], rho[res.valid], rtol=1e-3)
+    assert res.normals.dtype == np.float32 and res.albedo.dtype == np.float32
+    assert res.residual_rms.dtype == np.float32 and res.valid.dtype == bool
+    assert np.all(res.normals[~res.valid] == 0) and np.all(res.albedo[~res.valid] == 0)
+    np.testing.assert_allclose(np.linalg.norm(res.normals[res.valid], axis=-1), 1, atol=1e-6)
+    assert np.max(res.residual_rms[res.valid]) < 1e-4
+
+
+def test_near_lights_per_pixel_and_paper_phase_convention() -> None:
+    # One light direction per pixel (near LEDs) and the paper's phase sign, noise-free.
+    normals, mask = _surface(41, ridges=False)
+    size = mask.shape[0]
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    points = np.stack([u - size / 2, size / 2 - v, np.zeros_like(u)], axis=-1) * 0.3e-3
+    leds = 0.1 * LIGHTS  # LEDs 0.1 m from the surface's centre
+    lights = leds[:, None, None, :] - points[None]
+    lights /= np.linalg.norm(lights, axis=-1, keepdims=True)
+    params = SkinParams(phase=PhaseConvention.PAPER)
+    rho = np.full(mask.shape, 0.5)
+    images = _render(normals, mask, rho, lights=lights, params=params, scale=2.0)
+    init = np.where(mask[..., None], np.array([0.0, 0.0, 1.0]), 0.0)
+    res = solve_hk(images, lights, mask=mask, init_normals=init, init_albedo=rho,
+                   intensities=INTENSITIES, params=params, iterations=40)
+    assert np.nanmax(angular_error_deg(res.normals, normals, mask=res.valid)) < 0.05
+    assert res.scale == pytest.approx(2.0, rel=1e-3)
+    assert res.valid.sum() == mask.sum()
+
+
+def test_per_pixel_intensities_weight_the_model() -> None:
+    # Images under a per-pixel lighting field (as near LEDs give), not divided by it: the
+    # field given as intensities (K, H, W) recovers the surface; a non-positive intensity
+    # leaves that measurement out.
+    normals, mask = _surface(41, ridges=False)
+    rng = np.random.default_rng(5)
+    field = rng.uniform(0.7, 1.3, (7, *mask.shape))
+    rho = np.full(mask.shape, 0.5)
+    images = _render(normals, mask, rho) / INTENSITIES[:, None, None] * field
+    field[0, 20, 20] = 0.0
+    images[0, 20, 20] = 99.0  # would spoil the fit if it were used
+    init = normals + 0.05 * rng.standard_normal(normals.shape)  # a few degrees off
+    init = np.where(mask[..., None], init, 0.0)
+    res = solve_hk(images, LIGHTS, mask=mask, init_normals=init, init_albedo=rho,
+                   intensities=field, iterations=40)
+    assert np.nanmax(angular_error_deg(res.normals, normals, mask=res.valid)) < 0.05
+    assert res.scale == pytest.approx(SCALE, rel=1e-3) and res.valid[20, 20]
+
+
+def test_fixed_scale_is_kept() -> None:
+    normals, mask = _surface(41)
+    rho = np.full(mask.shape, 0.5)
+    images = _render(normals, mask, rho)
+    res, _ = _solve(images, mask, scale=SCALE, iterations=30)
+    assert res.scale == SCALE
+    assert np.nanmax(angular_error_deg(res.normals, normals, mask=res.valid)) < 0.05
+    # A wrong fixed scale gives a worse fit than the fitted one.
+    wrong, _ = _solve(images, mask, scale=0.5 * SCALE, iterations=30)
+    assert wrong.cost_history[-1] > 100 * res.cost_history[-1]
+
+
+def test_cost_history_is_non_increasing_and_iterations_counted() -> None:
+    normals, mask = _surface()
+    rng = np.random.default_rng(3)
+    images = _render(normals, mask, rng.uniform(0.4, 0.6, mask.shape))
+    images = images + 0.01 * rng.standard_normal(images.shape)
+    res, _ = _solve(images, mask, iterations=8, tol=0.0)
+    history = np.array(res.cost_history)
+    assert res.iterations == 8 and history.size == 9
+    assert np.all(np.diff(history) <= 0)
+    assert history[1] < history[0] and history[-1] < 0.9 * history[0]
+    stopped, _ = _solve(images, mask, iterations=50, tol=1e-3)
+    assert stopped.iterations < 50 and len(stopped.cost_history) == stopped.iterations + 1
+    none, _ = _solve(images, mask, iterations=0)
+    assert none.iterations == 0 and len(none.cost_history) == 1
+
+
+def test_lambertian_data_gives_scale_near_zero_and_the_lambertian_normals() -> None:
+    normals, mask = _surface()
+    rng = np.random.default_rng(4)
+    rho = rng.uniform(0.4, 0.6, mask.shape)
+    images = lambertian_shading(normals, LIGHTS[:, None, None, :], rho=rho)
+    images = images * INTENSITIES[:, None, None] * mask
+    images = images + 0.005 * rng.standard_normal(images.shape)
+    res, lam = _solve(images, mask)
+    # A = 0 is a valid answer (A >= 0); "near zero": its term is < 1 % of the signal.
+    assert 0.0 <= res.scale < 0.1
+    diff = angular_error_deg(res.normals, lam.normals, mask=res.valid)
+    assert np.nanmedian(diff) < 0.01 and np.nanmean(diff) < 0.1
+    err_hk = angular_error_deg(res.normals, normals, mask=res.valid)
+    err_lam = angular_error_deg(lam.normals, normals, mask=res.valid)
+    assert np.nanmean(err_hk) <= 1.02 * np.nanmean(err_lam)
+
+
+def test_usable_mask_and_too_few_measurements() -> None:
+    normals, mask = _surface(31)
+    rho = np.full(mask.shape, 0.5)
+    images = _render(normals, mask, rho)
+    usable = np.ones(images.shape, dtype=bool)
+    usable[2:, 10, 10] = False  # 2 usable measurements left: invalid
+    usable[4:, 12, 12] = False  # 4 left: still solved
+    corrupt = images.copy()
+    corrupt[3, 12, 12] = 5.0  # a saturated value, marked unusable
+    usable[3, 12, 12] = False
+    init = np.where(mask[..., None], np.array([0.0, 0.0, 1.0]), 0.0)
+    res = solve_hk(corrupt, LIGHTS, mask=mask, init_normals=init, init_albedo=rho,
+                   intensities=INTENSITIES, usable=usable, iterations=40)
+    assert not res.valid[10, 10] and res.valid[12, 12]
+    assert angular_error_deg(res.normals[12, 12], normals[12, 12]) < 0.05
+    assert res.valid.sum() == mask.sum() - 1
+
+
+def test_grazing_normals_stay_finite() -> None:
+    # Normals almost perpendicular to the view and a light in attached shadow: the
+    # derivatives of c_i / (c_i + c_r) would blow up; the result must stay finite.
+    normals = np.array([[[np.sin(np.radians(89.9)), 0.0, np.cos(np.radians(89.9))]] * 3])
+    mask = np.ones((1, 3), dtype=bool)
+    lights = np.array([[0.9, 0.0, 0.436], [0.6, 0.6, 0.529], [0.6, -0.6, 0.529],
+                       [-0.3, 0.0, 0.954]])
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    images = hk_reflectance(normals, lights[:, None, None, :], np.array([0, 0, 1.0]), rho=0.5,
+                            scale=SCALE) + 0.01
+    init = np.tile(np.array([0.9, 0.0, 0.1]) / np.linalg.norm([0.9, 0.0, 0.1]), (1, 3, 1))
+    res = solve_hk(images, lights, mask=mask, init_normals=init, init_albedo=np.full((1, 3), 0.5))
+    assert np.all(np.isfinite(res.normals)) and np.all(np.isfinite(res.albedo))
+    assert np.isfinite(res.scale) and np.all(np.isfinite(res.cost_history))
+
+
+def test_blocks_and_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The solver works on blocks of pixels in threads; the test scenes fit in one block, so
+    # force small blocks: the same answer with 1 or 2 threads, and as with one block.
+    normals, mask = _surface()
+    rng = np.random.default_rng(6)
+    images = _render(normals, mask, rng.uniform(0.4, 0.6, mask.shape))
+    images = images + 0.01 * rng.standard_normal(images.shape)
+    whole, _ = _solve(images, mask, iterations=6, tol=0.0)
+    monkeypatch.setattr(hk_solver, "_BLOCK", 256)
+    results = []
+    for threads in (1, 2):
+        monkeypatch.setattr(hk_solver, "_MAX_THREADS", threads)
+        results.append(_solve(images, mask, iterations=6, tol=0.0)[0])
+    one, two = results
+    np.testing.assert_array_equal(one.normals, two.normals)
+    assert one.scale == two.scale and one.cost_history == two.cost_history
+    # One block sums A's terms in another order: equal up to rounding.
+    np.testing.assert_array_equal(one.valid, whole.valid)
+    assert np.nanmax(angular_error_deg(one.normals, whole.normals, mask=one.valid)) < 0.01
+    assert one.scale == pytest.approx(whole.scale, rel=1e-4)
+
+
+def test_empty_mask_returns_nothing_valid() -> None:
+    images = np.ones((3, 4, 5))
+    res = solve_hk(images, LIGHTS[:3], mask=np.zeros((4, 5), bool),
+                   init_normals=np.zeros((4, 5, 3)), init_albedo=np.zeros((4, 5)))
+    assert not res.valid.any() and np.isnan(res.scale) and res.iterations == 0
+
+
+def _good_inputs() -> dict[str, np.ndarray]:
+    normals, mask = _surface(21)
+    rho = np.full(mask.shape, 0.5)
+    return {
+        "images": _render(normals, mask, rho), "lights": LIGHTS.copy(), "mask": mask,
+        "init_normals": np.where(mask[..., None], np.array([0.0, 0.0, 1.0]), 0.0),
+        "init_albedo": rho,
+    }
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"images": np.ones((7, 21))}, "images"),
+        ({"images": np.ones((2, 21, 21)), "lights": LIGHTS[:2]}, "at least 3"),
+        ({"lights": LIGHTS[:5]}, "lights"),
+        ({"lights": np.ones((7, 20, 21, 3))}, "lights"),
+        ({"lights": np.vstack([LIGHTS[:6], [[0.0, 0.0, 0.0]]])}, "zero"),
+        ({"lights": np.vstack([LIGHTS[:6], [[np.nan, 0.0, 1.0]]])}, "non-finite"),
+        ({"mask": np.ones((21, 20), bool)}, "mask"),
+        ({"mask": np.ones((21, 21), np.uint8)}, "mask"),
+        ({"init_normals": np.zeros((21, 21, 2))}, "init_normals"),
+        ({"init_albedo": np.zeros((21, 20))}, "init_albedo"),
+        ({"views": np.zeros(2)}, "views"),
+        ({"views": np.zeros(3)}, "zero"),
+        ({"intensities": np.ones(6)}, "intensities"),
+        ({"intensities": np.array([1, 1, 1, 1, 1, 1, 0.0])}, "intensities"),
+        ({"intensities": np.ones((7, 21, 20))}, "intensities"),
+        ({"usable": np.ones((7, 21, 21), np.uint8)}, "usable"),
+        ({"scale": -1.0}, "scale"),
+        ({"scale": float("nan")}, "scale"),
+        ({"iterations": -1}, "iterations"),
+        ({"iterations": 2.5}, "iterations"),
+        ({"tol": -1e-3}, "tol"),
+        ({"params": "finger"}, "SkinParams"),
+    ],
+)
+def test_bad_inputs_raise(change: dict[str, object], message: str) -> None:
+    kwargs: dict[str, object] = {**_good_inputs(), **change}
+    images, lights = kwargs.pop("images"), kwargs.pop("lights")
+    with pytest.raises(FingerpsReconError, match=message):
+        solve_hk(images, lights, **kwargs)
+
+
+def test_inputs_are_not_modified() -> None:
+    inputs = _good_inputs()
+    size = inputs["mask"].shape[0]
+    inputs["images"] = inputs["images"].astype(np.float32)
+    inputs["views"] = _perspective_views(size)
+    inputs["usable"] = inputs["images"] > 0
+    inputs["intensities"] = np.ones(inputs["images"].shape) * INTENSITIES[:, None, None]
+    inputs["lights"] = np.broadcast_to(LIGHTS[:, None, None, :], (7, size, size, 3)).copy()
+    copies = {name: np.array(value, copy=True) for name, value in inputs.items()}
+    images, lights = inputs.pop("images"), inputs.pop("lights")
+    solve_hk(images, lights, **inputs)
+    inputs["images"], inputs["lights"] = images, lights
+    for name, value in inputs.items():
+        np.testing.assert_array_equal(value, copies[name], err_msg=name)
