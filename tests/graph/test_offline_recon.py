@@ -169,7 +169,7 @@ def test_grey_8bit_sphere(offline_recon: Callable, tmp_path: Path) -> None:
 
 def test_colour_16bit_sphere_with_channel_intensities_and_enhancement(
         offline_recon: Callable, tmp_path: Path) -> None:
-    truth, mask, _ = _write_sphere(tmp_path / "sphere", colour16=True)
+    truth, mask, height = _write_sphere(tmp_path / "sphere", colour16=True)
     out = tmp_path / "out"
     run = _ok(offline_recon(tmp_path / "sphere", "--out", out, "--w", "5",
                             "--pixel-size", "1e-4"))
@@ -190,7 +190,8 @@ def test_colour_16bit_sphere_with_channel_intensities_and_enhancement(
     assert report["enhancement"] == {"w": 5, "k": 2.5}
     assert report["depth_unit"] == "m" and report["pixel_size"] == 1e-4
     depth = np.load(out / "depth.npy")
-    assert 8e-3 < np.nanmax(depth) - np.nanmin(depth) < 1.2e-2  # a 5 mm sphere, cap ~1 cm
+    span = (height.max() - height[mask].min()) * 1e-4  # a 5 mm sphere at 0.1 mm a pixel
+    assert np.nanmax(depth) - np.nanmin(depth) == pytest.approx(span, rel=0.05)
     assert "angular error vs Normal_gt.mat" in run.stdout
 
 

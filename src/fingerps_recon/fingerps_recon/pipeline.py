@@ -1,8 +1,22 @@
 """One burst in, normals, depth and points out: the reconstruction pipeline without ROS.
 
-Steps: dark-frame subtraction, flat-field correction (paper Eq. 11), the finger mask,
-Lambertian photometric stereo (paper Eq. 3), optional ridge enhancement (Eq. 12) on a copy,
-integration of the normals into depth, back-projection into points in the optical frame.
+Steps: dark-frame subtraction; the lighting field; the finger mask; Lambertian photometric
+stereo (paper Eq. 3); optionally the simplified Hanrahan-Krueger solver (Eq. 4-7)
+initialised from it; ridge enhancement (Eq. 12) on a copy; integration of the normals into
+depth; back-projection into points in the optical frame.
+
+Two light models:
+
+- distant lights (the paper's): one direction per LED; the flat field (Eq. 11) divides each
+  image by its portion map p_k, and the LEDs' relative intensities scale the rows of L;
+- near lights, when the LED positions are known: per pixel, the direction from the point
+  where the pixel's ray meets the plane z = working distance to each LED
+  (:mod:`fingerps_recon.pixel_rays`), and per-pixel irradiance from the white target
+  (W_k, rebuilt from the portion maps and relative intensities, divided by the target's
+  cosine l_k . z) instead of dividing the images. On the simulated rig this halves the HK
+  solver's error (bench/bench_recon_accuracy.py).
+
+Views are perspective (per pixel, from the camera matrix) or orthographic (0, 0, 1).
 """
 
 from __future__ import annotations
@@ -16,9 +30,18 @@ import numpy as np
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.finger_mask import finger_mask
 from fingerps_recon.flat_field import apply_flat_field
-from fingerps_recon.integration import depth_to_points, height_to_distance, integrate_normals
+from fingerps_recon.integration import (
+    depth_to_points,
+    integrate_normals,
+    integrate_normals_perspective,
+)
 from fingerps_recon.lambertian import solve_lambertian
 from fingerps_recon.normal_transform import enhance_ridges
+from fingerps_recon.pixel_rays import near_light_directions_ps, view_directions_ps
+
+# Smallest cosine between a near light and the white target's normal used to turn the
+# target's brightness into irradiance (a steeper light would amplify the target's noise).
+_MIN_TARGET_COSINE = 0.05
 
 
 class Model(Enum):
@@ -28,12 +51,21 @@ class Model(Enum):
     HK = "hk"             # simplified Hanrahan-Krueger model (paper Eq. 4-7)
 
 
+class Projection(Enum):
+    """Camera model for the view directions, the integration and the points."""
+
+    PERSPECTIVE = "perspective"     # pinhole camera with the camera matrix K
+    ORTHOGRAPHIC = "orthographic"   # pixel size = working distance / fx
+
+
 @dataclass(frozen=True)
 class ReconstructionOptions:
     """Options of :func:`reconstruct`; defaults are the simulated rig's."""
 
     model: Model = Model.LAMBERT
-    hk_iterations: int = 10
+    hk_iterations: int = 5
+    """Converged on the simulated finger at 5 (bench/bench_recon_accuracy.py)."""
+    projection: Projection = Projection.PERSPECTIVE
     mask_threshold: float = 0.15
     shadow_fraction: float = 0.02
     """Values at or below this fraction of full scale count as shadow (left out)."""
@@ -51,11 +83,13 @@ class Reconstruction:
 
     normals_ps: np.ndarray          # (H, W, 3) float32, zeros outside ``mask``
     enhanced_ps: np.ndarray | None  # (H, W, 3) float32 after Eq. 12, when asked for
-    albedo: np.ndarray              # (H, W) float32
+    albedo: np.ndarray              # (H, W) float32, zeros outside ``mask``
     mask: np.ndarray                # (H, W) bool: finger pixels with a valid normal
     depth_m: np.ndarray             # (H, W) float32, optical z in metres, NaN outside
+    height_m: np.ndarray            # (H, W) float32, relief towards the camera, NaN outside
     points_optical: np.ndarray      # (N, 3) float32, metres
     point_albedo: np.ndarray        # (N,) float32
+    hk_scale: float | None = None   # the HK model's fitted global scale A
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -68,6 +102,8 @@ def reconstruct(
     intensities: np.ndarray | None = None,
     portions: np.ndarray | None = None,
     dark: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    led_positions_optical: np.ndarray | None = None,
     options: ReconstructionOptions = ReconstructionOptions(),
 ) -> Reconstruction:
     """Reconstruct one burst.
@@ -75,9 +111,10 @@ def reconstruct(
     Parameters
     ----------
     images : (K, H, W) uint8/uint16/float
-        One image per LED, in the order of ``lights_ps``.
+        One image per LED, in the order of ``lights_ps``. Not modified.
     lights_ps : (K, 3) float
-        Unit light directions in the PS frame (from the light calibration).
+        Unit light directions in the PS frame (the light calibration); used as distant
+        lights when ``led_positions_optical`` is not given.
     camera_matrix : (3, 3) float
         Intrinsics K, pixels.
     full_scale : float
@@ -85,26 +122,48 @@ def reconstruct(
     intensities : (K,) float, optional
         Relative LED intensities (flat-field calibration); all equal when not given.
     portions : (K, H, W) float, optional
-        Flat-field portion maps p_k (Eq. 11); no correction when not given.
+        Flat-field portion maps p_k (Eq. 11); no lighting-field correction when not given.
     dark : (H, W), optional
         An all-LEDs-off frame subtracted from every image.
+    mask : (H, W) bool, optional
+        The object's pixels; found from the images (the finger mask) when not given.
+    led_positions_optical : (K, 3) float, optional
+        LED positions in metres, optical frame: switches to the near-light model.
     """
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     stack = _checked_stack(images, len(lights_ps), full_scale=full_scale,
                            shadow_fraction=options.shadow_fraction)
+    shape = stack.shape[1:]
+    k_matrix = np.asarray(camera_matrix, dtype=np.float64)
     saturated = stack >= options.saturation_fraction * full_scale
     if dark is not None:
-        if np.shape(dark) != stack.shape[1:]:
-            raise FingerpsReconError(
-                f"dark frame {np.shape(dark)} differs from the images {stack.shape[1:]}")
+        if np.shape(dark) != shape:
+            raise FingerpsReconError(f"dark frame {np.shape(dark)} differs from the images {shape}")
         stack = np.clip(stack - np.asarray(dark, dtype=np.float32), 0.0, None)
-    if portions is not None:
+    if portions is not None and np.shape(portions) != stack.shape:
+        raise FingerpsReconError(
+            f"flat-field maps {np.shape(portions)} do not fit the images {stack.shape}; "
+            "recalibrate the flat field for this camera mode")
+
+    lights = np.asarray(lights_ps, dtype=np.float64)
+    light_power = None if intensities is None else np.asarray(intensities, dtype=np.float64)
+    if led_positions_optical is not None:
+        lights = near_light_directions_ps(
+            led_positions_optical, camera_matrix=k_matrix, shape=shape,
+            working_distance_m=options.working_distance_m)
+        if portions is not None:
+            light_power = _irradiance(portions, light_power, lights)
+    elif portions is not None:
         stack = apply_flat_field(stack, portions)
-    # Saturated pixels stay excluded after correction: mark them above the new limit.
+    # Saturated pixels stay excluded after any correction: mark them above the new limit.
     limit = float(stack.max()) + 1.0
     stack[saturated] = limit
-    mask = finger_mask(np.where(saturated, 0.0, stack), threshold=options.mask_threshold)
+    if mask is None:
+        mask = finger_mask(np.where(saturated, 0.0, stack), threshold=options.mask_threshold)
+    elif np.shape(mask) != shape:
+        raise FingerpsReconError(f"mask {np.shape(mask)} differs from the images {shape}")
+    mask = np.asarray(mask, dtype=bool)
     if not mask.any():
         raise FingerpsReconError(
             "no finger in the burst (the mask selects nothing): place a finger in view, or "
@@ -112,41 +171,71 @@ def reconstruct(
     timings["prepare"] = (time.perf_counter() - t0) * 1e3
 
     t1 = time.perf_counter()
-    lights = np.asarray(lights_ps, dtype=np.float64)
     shadow_level = options.shadow_fraction * full_scale
-    lam = solve_lambertian(stack, lights, intensities=intensities, mask=mask,
+    lam = solve_lambertian(stack, lights, intensities=light_power, mask=mask,
                            shadow_level=shadow_level, saturation_level=limit)
     timings["lambert"] = (time.perf_counter() - t1) * 1e3
     valid = lam.valid & mask
-    normals, albedo = lam.normals, lam.albedo
+    normals, albedo, hk_scale = lam.normals, lam.albedo, None
     if options.model is Model.HK:
         from fingerps_recon.hk_solver import solve_hk
 
         t1 = time.perf_counter()
+        views = (view_directions_ps(k_matrix, shape)
+                 if options.projection is Projection.PERSPECTIVE else (0.0, 0.0, 1.0))
         usable = (stack > shadow_level) & (stack < limit)
         hk = solve_hk(stack, lights, mask=valid, init_normals=normals, init_albedo=albedo,
-                      intensities=intensities, usable=usable,
+                      views=views, intensities=light_power, usable=usable,
                       iterations=options.hk_iterations)
-        normals, albedo, valid = hk.normals, hk.albedo, hk.valid & valid
+        normals, albedo, valid, hk_scale = hk.normals, hk.albedo, hk.valid & valid, hk.scale
         timings["hk"] = (time.perf_counter() - t1) * 1e3
     normals = np.where(valid[..., None], normals, 0.0).astype(np.float32)
 
     enhanced = None
     if options.enhance:
+        t1 = time.perf_counter()
         enhanced = enhance_ridges(normals, w=options.w, k=options.k, mask=valid)
+        timings["enhance"] = (time.perf_counter() - t1) * 1e3
 
     t2 = time.perf_counter()
-    fx = float(camera_matrix[0, 0])
-    height = integrate_normals(normals, mask=valid,
-                               pixel_size_m=options.working_distance_m / fx)
-    depth = height_to_distance(height, working_distance_m=options.working_distance_m)
-    points, index = depth_to_points(depth, valid, camera_matrix=camera_matrix)
+    depth, height, points, index = _surface(normals, valid, k_matrix, options)
     timings["depth"] = (time.perf_counter() - t2) * 1e3
     timings["total"] = (time.perf_counter() - t0) * 1e3
     albedo = np.where(valid, albedo, 0.0).astype(np.float32)
     return Reconstruction(
         normals_ps=normals, enhanced_ps=enhanced, albedo=albedo, mask=valid, depth_m=depth,
-        points_optical=points, point_albedo=albedo.reshape(-1)[index], timings_ms=timings)
+        height_m=height, points_optical=points, point_albedo=albedo.reshape(-1)[index],
+        hk_scale=hk_scale, timings_ms=timings)
+
+
+def _irradiance(portions: np.ndarray, intensities: np.ndarray | None,
+                lights: np.ndarray) -> np.ndarray:
+    """Per-pixel irradiance E_k (K, H, W) of each LED from the white target: W_k rebuilt from
+    the portion maps (p_k = W_k / max W_k) and the relative intensities (mean W_k over the
+    brightest LED's), divided by the target's cosine l_k . z (it faces the camera)."""
+    p = np.asarray(portions, dtype=np.float32)
+    relative = np.ones(len(p)) if intensities is None else intensities
+    white = p * (relative / p.reshape(len(p), -1).mean(axis=1))[:, None, None].astype(np.float32)
+    return white / np.maximum(lights[..., 2], _MIN_TARGET_COSINE)
+
+
+def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
+             options: ReconstructionOptions) -> tuple[np.ndarray, ...]:
+    """Depth, height, points and their pixel index, under the options' projection."""
+    distance = options.working_distance_m
+    if options.projection is Projection.PERSPECTIVE:
+        depth = integrate_normals_perspective(normals, mask=valid, camera_matrix=k_matrix,
+                                              working_distance_m=distance)
+        points, index = depth_to_points(depth, valid, camera_matrix=k_matrix)
+        return depth, (distance - depth).astype(np.float32), points, index
+    pixel_size = distance / float(k_matrix[0, 0])
+    height = integrate_normals(normals, mask=valid, pixel_size_m=pixel_size)
+    depth = (distance - height.astype(np.float64)).astype(np.float32)
+    index = np.flatnonzero(valid & np.isfinite(height))
+    v, u = np.divmod(index, valid.shape[1])
+    points = np.stack([(u - k_matrix[0, 2]) * pixel_size, (v - k_matrix[1, 2]) * pixel_size,
+                       depth.reshape(-1)[index]], axis=1).astype(np.float32)
+    return depth, height, points, index
 
 
 def _checked_stack(images: np.ndarray, light_count: int, *, full_scale: float,
