@@ -25,6 +25,8 @@ setup(
     entry_points={
         "console_scripts": [
             'calib_node = fingerps_calib.calib_node:main',
+            'calibrate_lights = fingerps_calib.calibrate_lights_command:main',
+            'calibrate_camera = fingerps_calib.calibrate_camera_command:main',
         ],
     },
 )

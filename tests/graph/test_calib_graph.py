@@ -33,6 +33,13 @@ FLAT_TOPIC = f"{NS}/{topics.FLAT_FIELD}"
 MAX_DIRECTION_ERROR_DEG = 0.5
 
 
+@pytest.fixture(autouse=True)
+def _own_ros_home(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """calib_node saves its calibration under $ROS_HOME (and loads it at start): give each
+    test its own, so no test sees another's calibration or the user's."""
+    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
+
+
 def _call(node: Node, client, request, spin_until, *, timeout: float = 30.0):
     assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
     future = client.call_async(request)

@@ -1,15 +1,28 @@
 """calib_node: light directions from a shiny sphere and flat-field maps from a white target.
 
-Thin ROS adapter around ``fingerps_calib.sphere_calibration.calibrate_lights`` and
+Thin ROS adapter around ``fingerps_calib.sphere_calibration.calibrate_lights``,
+``fingerps_calib.led_triangulation.combine_placements`` and
 ``fingerps_calib.flat_field_calibration.flat_field_maps``. The services take the images in
-the request, or, when the request has none, ask the driver for a burst. A calibration that
-fails its checks is not published; the last good one stays in force. Both calibrations are
-published reliable and transient-local, so nodes that start later still receive them.
+the request, or, when the request has none, ask the driver for a burst. Camera intrinsics
+come from ``camera_info_file`` when it is set, else from the driver's camera_info.
+
+A light calibration with ``add_placement`` is combined with the placements of the
+calibration in force (two or more: the LED positions are triangulated); without it, the new
+placement alone is the calibration (and starts a new set of placements).
+
+A calibration that fails its checks is not published, not saved, and the last good one stays
+in force (its picture is saved as ``*_rejected.png``). A good one is published reliable and
+transient-local (nodes that start later still receive it), saved to ``calibration_dir``
+(``fingerps_calib.calibration_store``) with its picture (``calibration_picture``), and loaded
+from there at the next start.
 """
 
 from __future__ import annotations
 
+import os
 import threading
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import Point, Vector3
@@ -19,15 +32,57 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
+from fingerps_calib.calibration_picture import (
+    distort_points,
+    flat_field_picture,
+    lights_picture,
+    sphere_outline,
+    write_png,
+)
+from fingerps_calib.calibration_store import (
+    FLAT_FIELD_FILE,
+    LIGHTS_FILE,
+    FlatFieldRecord,
+    LightsRecord,
+    iso_date,
+    load_flat_field,
+    load_lights,
+    save_flat_field,
+    save_lights,
+)
+from fingerps_calib.camera_info_yaml import CameraIntrinsics, load_camera_info
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_calib.sphere_calibration import calibrate_lights
+from fingerps_calib.led_triangulation import Placement, combine_placements
+from fingerps_calib.sphere_calibration import LightCalibrationResult, calibrate_lights
 from fingerps_msgs.msg import FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
 from fingerps_recon import qos, topics
+from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.image_conversion import array_to_image, image_to_array
-from fingerps_recon.node_runner import run_node
+from fingerps_recon.node_runner import StartupError, run_node
 from fingerps_recon.parameters import ParameterChecks, descriptor
+
+DEFAULT_FRAME_ID = "fingerps_camera_optical_frame"
+LIGHTS_PICTURE = "lights.png"
+FLAT_FIELD_PICTURE = "flat_field.png"
+
+
+def default_calibration_dir() -> str:
+    """``$ROS_HOME/fingerps/calibration`` (ROS_HOME defaults to ~/.ros)."""
+    ros_home = os.environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros")
+    return os.path.join(ros_home, "fingerps", "calibration")
+
+
+@dataclass(frozen=True)
+class _Camera:
+    """The intrinsics a calibration uses and where they came from."""
+
+    matrix: np.ndarray
+    distortion: np.ndarray | None
+    width: int
+    height: int
+    source: str
 
 
 class CalibNode(Node):
@@ -47,9 +102,53 @@ class CalibNode(Node):
             "Degree of the smooth 2D polynomial fitted to each white-target image (so paper "
             "texture and noise do not enter the flat-field maps)", min_value=1, max_value=10,
             integer=True))
-        p("camera_name", "fingerps_sim", descriptor("Camera name written into calibrations"))
-
+        p("camera_name", "fingerps_sim", descriptor(
+            "Camera name written into calibrations; a saved calibration of another camera "
+            "is not loaded"))
+        p("calibration_dir", default_calibration_dir(), descriptor(
+            "Directory where the calibration in force is saved (lights.yaml, "
+            "flat_field.yaml + .npz, pictures) and loaded from at start; empty: neither",
+            read_only=True))
+        p("camera_info_file", "", descriptor(
+            "camera_info YAML (camera_calibration format) with the intrinsics; empty: use the "
+            "driver's camera_info", read_only=True))
+        p("reference_point", [0.0, 0.0025, 0.09], descriptor(
+            "Point (x, y, z) in metres, optical frame, where the finger rests (the default: "
+            "the simulated rig's fingertip apex); the directions of a calibration from two "
+            "or more sphere placements start there, and its distance is the expected "
+            "distance of the sphere", constraints="three numbers, z > 0"))
+        p("sphere_distance_tolerance", 0.3, descriptor(
+            "The sphere centre must lie within this fraction of the reference point's "
+            "distance from the camera (a wrong sphere radius shows as a wrong distance)",
+            min_value=0.05, max_value=0.9))
+        p("mono16_full_scale", 4095.0, descriptor(
+            "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
+            max_value=65535.0))
+        self._checks.add("reference_point", _check_reference_point)
         self._checks.refuse_unknown_overrides(self)
+        problems = self._checks.problems(
+            [self.get_parameter(name) for name in ("reference_point",)])
+        if problems:
+            raise StartupError("; ".join(problems))
+
+        self._file_camera: CameraIntrinsics | None = None
+        info_file = str(self.get_parameter("camera_info_file").value)
+        if info_file:
+            self._file_camera = load_camera_info(info_file)  # FingerpsCalibError: exit 2
+        directory = str(self.get_parameter("calibration_dir").value)
+        self._dir = Path(directory).expanduser() if directory else None
+        if self._dir is not None:
+            try:
+                self._dir.mkdir(parents=True, exist_ok=True)
+                writable = os.access(self._dir, os.W_OK)
+            except OSError as exc:
+                writable, reason = False, str(exc)
+            else:
+                reason = "not writable"
+            if not writable:
+                raise StartupError(
+                    f"calibration_dir {self._dir}: {reason}; set calibration_dir to a "
+                    "writable directory (or to '' to neither save nor load calibrations)")
 
         self._service_group = MutuallyExclusiveCallbackGroup()
         self._client_group = ReentrantCallbackGroup()
@@ -62,16 +161,62 @@ class CalibNode(Node):
                                                  qos.CALIBRATION_QOS)
         self._pub_flat = self.create_publisher(FlatField, topics.FLAT_FIELD,
                                                qos.CALIBRATION_QOS)
+        self._lights: LightsRecord | None = None
+        self._flat: FlatFieldRecord | None = None
+        self._lights_msg: LightCalibration | None = None
+        self._load_saved()
         self.create_service(CalibrateLights, topics.CALIBRATE_LIGHTS, self._on_lights,
                             callback_group=self._service_group)
         self.create_service(CalibrateFlatField, topics.CALIBRATE_FLAT_FIELD, self._on_flat,
                             callback_group=self._service_group)
-        self._lights: LightCalibration | None = None
-        self._flat: FlatField | None = None
-        self.get_logger().info("calib ready")
+        source = f"camera_info_file {info_file}" if info_file else "the driver's camera_info"
+        where = str(self._dir) if self._dir is not None else "nowhere (calibration_dir empty)"
+        self.get_logger().info(f"calib ready: intrinsics from {source}; calibrations saved "
+                               f"to {where}")
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         self._camera_info = msg
+
+    # ------------------------------------------------------------------ saved calibration
+    def _load_saved(self) -> None:
+        """Load and publish the saved calibration, if any (errors are logged, not fatal:
+        the operator can recalibrate, which replaces the files)."""
+        if self._dir is None:
+            return
+        name = str(self.get_parameter("camera_name").value)
+        log = self.get_logger()
+        try:
+            flat = load_flat_field(self._dir)
+        except FingerpsCalibError as exc:
+            log.error(f"saved flat field not loaded: {exc}")
+            flat = None
+        if flat is not None and flat.camera_name != name:
+            log.warning(f"saved flat field in {self._dir} is for camera {flat.camera_name!r}, "
+                        f"this node's camera_name is {name!r}: not loaded; recalibrate")
+            flat = None
+        if flat is not None:
+            self._flat = flat
+            self._pub_flat.publish(self._flat_message(flat))
+            log.info(f"loaded the flat field of {flat.date} ({flat.portions.shape[0]} maps "
+                     f"{flat.portions.shape[2]}x{flat.portions.shape[1]}) from "
+                     f"{self._dir / FLAT_FIELD_FILE}; published")
+        try:
+            lights = load_lights(self._dir)
+        except FingerpsCalibError as exc:
+            log.error(f"saved light calibration not loaded: {exc}")
+            lights = None
+        if lights is not None and lights.camera_name != name:
+            log.warning(f"saved light calibration in {self._dir} is for camera "
+                        f"{lights.camera_name!r}, this node's camera_name is {name!r}: not "
+                        "loaded; recalibrate")
+            lights = None
+        if lights is not None:
+            self._lights = lights
+            self._lights_msg = self._lights_message(lights)
+            self._pub_lights.publish(self._lights_msg)
+            log.info(f"loaded the light calibration of {lights.date} ({lights.lights.led_count} "
+                     f"LEDs, {len(lights.lights.placements)} placement(s)) from "
+                     f"{self._dir / LIGHTS_FILE}; published")
 
     # ------------------------------------------------------------------ images
     def _frames(self, given: list[TaggedFrame], *, with_dark: bool
@@ -80,8 +225,7 @@ class CalibNode(Node):
         asked); sorted by LED. Returns (frames, camera info, dark image or None)."""
         if given:
             lit = [f for f in given if f.led_index != TaggedFrame.LED_DARK]
-            darks = [image_to_array(f.image) for f in given
-                     if f.led_index == TaggedFrame.LED_DARK]
+            darks = [_pixels(f) for f in given if f.led_index == TaggedFrame.LED_DARK]
             return (sorted(lit, key=lambda f: f.led_index), self._camera_info,
                     darks[0] if darks else None)
         timeout = float(self.get_parameter("capture_timeout").value)
@@ -101,7 +245,7 @@ class CalibNode(Node):
             reason = response.message if response is not None else "no response"
             raise FingerpsCalibError(f"the driver's burst failed: {reason}")
         burst = response.burst
-        dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
+        dark = _pixels(burst.dark_frame) if burst.has_dark_frame else None
         return sorted(burst.frames, key=lambda f: f.led_index), burst.camera_info, dark
 
     @staticmethod
@@ -112,92 +256,345 @@ class CalibNode(Node):
             raise FingerpsCalibError(
                 f"expected one frame per LED 0..{max(count - 1, 0)}, got LEDs {indices}: "
                 "capture a whole burst")
-        images = [image_to_array(f.image) for f in frames]
+        images = [_pixels(f) for f in frames]
         shapes = {im.shape for im in images}
         if len(shapes) != 1:
             raise FingerpsCalibError(f"frames of different sizes {sorted(shapes)}; recapture")
+        if images[0].ndim != 2:
+            raise FingerpsCalibError(
+                f"frames are {frames[0].image.encoding}; the calibration needs mono8, mono16 "
+                "or 32FC1 images")
         return np.stack(images)
 
-    # ------------------------------------------------------------------ services
+    def _camera(self, info: CameraInfo | None) -> _Camera | None:
+        """The intrinsics to use: camera_info_file if set, else the driver's camera_info."""
+        if self._file_camera is not None:
+            c = self._file_camera
+            return _Camera(np.array(c.camera_matrix), _distortion(c.distortion_model,
+                                                                 c.distortion),
+                           c.width, c.height, f"camera_info_file ({c.camera_name})")
+        if info is None or info.k[0] <= 0:
+            return None
+        return _Camera(np.reshape(np.asarray(info.k, dtype=np.float64), (3, 3)),
+                       _distortion(info.distortion_model, np.asarray(info.d, dtype=float)),
+                       int(info.width), int(info.height), "the driver's camera_info")
+
+    @staticmethod
+    def _check_size(images: np.ndarray, camera: _Camera | None) -> None:
+        if camera is None or camera.width <= 0:
+            return
+        h, w = images.shape[1:]
+        if (w, h) != (camera.width, camera.height):
+            raise FingerpsCalibError(
+                f"the images are {w}x{h} but the intrinsics ({camera.source}) are for "
+                f"{camera.width}x{camera.height}: use the camera the intrinsics belong to, or "
+                "the intrinsics of this camera")
+
+    def _full_scale(self, frames: list[TaggedFrame]) -> float | None:
+        encoding = frames[0].image.encoding
+        if encoding == "mono8":
+            return 255.0
+        if encoding == "mono16":
+            return float(self.get_parameter("mono16_full_scale").value)
+        return None
+
+    # ------------------------------------------------------------------ lights
     def _on_lights(self, request: CalibrateLights.Request,
                    response: CalibrateLights.Response) -> CalibrateLights.Response:
         radius = request.sphere_radius or float(self.get_parameter("sphere_radius").value)
+        images, result, camera = None, None, None
         try:
             if radius <= 0:
                 raise FingerpsCalibError(f"sphere_radius must be > 0 m, got {radius}")
             frames, info, _ = self._frames(list(request.frames), with_dark=False)
             images = self._stack(frames)
-            if info is None or info.k[0] <= 0:
+            camera = self._camera(info)
+            if camera is None:
                 raise FingerpsCalibError(
-                    "no camera intrinsics: the light calibration needs the camera_info of the "
-                    "driver; start driver_node first")
-            result = calibrate_lights(images, camera_matrix=np.reshape(info.k, (3, 3)),
-                                      radius_m=radius)
+                    ("no camera intrinsics: start driver_node (its camera_info)"
+                     if info is None else
+                     "the driver's camera_info has no intrinsics (K = 0): set the driver's")
+                    + " or calib_node's camera_info_file (make one with `ros2 run "
+                    "fingerps_calib calibrate_camera` from checkerboard images)")
+            self._check_size(images, camera)
+            reference = np.asarray(self.get_parameter("reference_point").value, dtype=float)
+            tolerance = float(self.get_parameter("sphere_distance_tolerance").value)
+            distance = float(np.linalg.norm(reference))
+            result = calibrate_lights(
+                images, camera_matrix=camera.matrix, radius_m=radius,
+                distortion=camera.distortion, saturation_level=self._full_scale(frames),
+                require_whole_sphere=True,
+                expected_distance_m=(distance * (1 - tolerance), distance * (1 + tolerance)))
+            if not result.ok:
+                raise _RefusedError("light calibration failed its checks: "
+                               + "; ".join(result.problems), result.problems)
+            placements = [Placement.from_result(result)]
+            if request.add_placement and self._lights is not None:
+                self._check_compatible(self._lights, images, camera)
+                placements = [*self._lights.lights.placements, *placements]
+            combined = combine_placements(placements, reference_point_optical_m=reference)
+            if not combined.ok:
+                raise _RefusedError(
+                    f"the {len(placements)} sphere placements do not combine (this placement "
+                    "is not added): " + "; ".join(combined.problems), combined.problems)
+        except _RefusedError as exc:
+            return self._refuse_lights(response, str(exc), exc.problems, images, result,
+                                       camera)
         except FingerpsCalibError as exc:
-            response.success, response.message = False, str(exc)
-            self.get_logger().error(f"light calibration refused: {exc}")
-            return response
-        if not result.ok:
-            response.success = False
-            response.message = "light calibration failed its checks: " + "; ".join(
-                result.problems)
-            self.get_logger().error(response.message)
-            return response
-        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=info.header.frame_id)
-        msg = LightCalibration(
-            header=header, camera_name=str(self.get_parameter("camera_name").value),
-            directions=[Vector3(x=float(d[0]), y=float(d[1]), z=float(d[2]))
-                        for d in result.directions_optical],
-            relative_intensities=self._intensities(len(frames)),
-            residuals=[float(r) for r in result.residuals_px],
-            sphere_radius=float(radius),
-            sphere_center=Point(x=float(result.sphere_center_optical_m[0]),
-                                y=float(result.sphere_center_optical_m[1]),
-                                z=float(result.sphere_center_optical_m[2])),
-            edge_fit_residual=float(result.edge_rms_px))
-        self._lights = msg
+            return self._refuse_lights(response, str(exc), (str(exc),), images, result,
+                                       camera)
+
+        frame_id = (info.header.frame_id if info is not None and info.header.frame_id
+                    else frames[0].header.frame_id or DEFAULT_FRAME_ID)
+        h, w = images.shape[1:]
+        record = LightsRecord(
+            camera_name=str(self.get_parameter("camera_name").value), frame_id=frame_id,
+            stamp_ns=self.get_clock().now().nanoseconds, image_width=w, image_height=h,
+            camera_matrix=camera.matrix, lights=combined)
+        msg = self._lights_message(record)
+        self._lights, self._lights_msg = record, msg
         self._pub_lights.publish(msg)
+        saved = self._save_lights(record, images, result, camera)
         response.success, response.calibration = True, msg
-        response.message = (f"{len(frames)} LEDs calibrated; sphere edge rms "
-                            f"{result.edge_rms_px:.2f} px, highlight residual max "
-                            f"{np.max(result.residuals_px):.2f} px")
+        response.message = _lights_summary(record) + saved
         self.get_logger().info(response.message)
         return response
+
+    def _check_compatible(self, in_force: LightsRecord, images: np.ndarray,
+                          camera: _Camera) -> None:
+        restart = "calibrate with add_placement=false to start a new set of placements"
+        n_led, h, w = images.shape
+        if in_force.lights.led_count != n_led:
+            raise FingerpsCalibError(
+                f"add_placement: the calibration in force has {in_force.lights.led_count} "
+                f"LEDs, these images {n_led}; {restart}")
+        if (in_force.image_width, in_force.image_height) != (w, h) or not np.allclose(
+                in_force.camera_matrix, camera.matrix, rtol=1e-9, atol=1e-9):
+            raise FingerpsCalibError(
+                "add_placement: the camera (image size or intrinsics) differs from the "
+                f"calibration in force's; {restart}")
+
+    def _refuse_lights(self, response: CalibrateLights.Response, message: str,
+                       problems: tuple[str, ...], images: np.ndarray | None,
+                       result: LightCalibrationResult | None,
+                       camera: _Camera | None) -> CalibrateLights.Response:
+        response.success, response.message = False, message
+        if self._lights is not None:
+            response.message += (f" [the calibration of {self._lights.date} stays in force]")
+        if images is not None and result is not None and camera is not None \
+                and self._dir is not None:
+            try:
+                picture = _picture(
+                    images, result, camera, result.directions_optical, (),
+                    title="light calibration REFUSED",
+                    lines=[f"camera {self.get_parameter('camera_name').value}, "
+                           f"{iso_date(self.get_clock().now().nanoseconds)}"],
+                    problems=problems)
+                path = write_png(self._dir / "lights_rejected.png", picture)
+                response.message += f" [picture: {path}]"
+            except FingerpsCalibError as exc:
+                self.get_logger().warning(f"no picture of the refused calibration: {exc}")
+        self.get_logger().error(f"light calibration refused: {response.message}")
+        return response
+
+    def _save_lights(self, record: LightsRecord, images: np.ndarray,
+                     result: LightCalibrationResult, camera: _Camera) -> str:
+        if self._dir is None:
+            return "; not saved (calibration_dir is empty)"
+        try:
+            path = save_lights(self._dir, record)
+        except FingerpsCalibError as exc:
+            self.get_logger().error(f"light calibration in force but NOT SAVED: {exc}")
+            return f"; NOT SAVED: {exc}"
+        text = f"; saved to {path}"
+        try:
+            placements = record.lights.placements
+            picture = _picture(
+                images, result, camera, record.lights.directions_optical,
+                [pl.directions_optical for pl in placements] if len(placements) > 1 else [],
+                title="light calibration in force", lines=_lights_lines(record))
+            text += f"; picture {write_png(self._dir / LIGHTS_PICTURE, picture)}"
+        except FingerpsCalibError as exc:
+            self.get_logger().warning(f"no picture of the light calibration: {exc}")
+        return text
+
+    def _lights_message(self, record: LightsRecord) -> LightCalibration:
+        lights = record.lights
+        header = Header(frame_id=record.frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(int(record.stamp_ns), 1_000_000_000)
+        centre = lights.sphere_center_optical_m
+        return LightCalibration(
+            header=header, camera_name=record.camera_name,
+            directions=[Vector3(x=float(d[0]), y=float(d[1]), z=float(d[2]))
+                        for d in lights.directions_optical],
+            relative_intensities=self._intensities(lights.led_count),
+            residuals=[float(r) for r in lights.residuals_px],
+            sphere_radius=float(lights.placements[-1].radius_m),
+            sphere_center=Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2])),
+            edge_fit_residual=float(lights.edge_rms_px),
+            placements=len(lights.placements),
+            led_positions=[Point(x=float(q[0]), y=float(q[1]), z=float(q[2]))
+                           for q in lights.led_positions_optical_m])
 
     def _intensities(self, count: int) -> list[float]:
         if self._flat is not None and len(self._flat.relative_intensities) == count:
-            return list(self._flat.relative_intensities)
+            return [float(x) for x in self._flat.relative_intensities]
         return [1.0] * count
 
+    # ------------------------------------------------------------------ flat field
     def _on_flat(self, request: CalibrateFlatField.Request,
                  response: CalibrateFlatField.Response) -> CalibrateFlatField.Response:
+        degree = int(self.get_parameter("flat_field_degree").value)
         try:
-            frames, _, dark = self._frames(list(request.frames), with_dark=True)
+            frames, info, dark = self._frames(list(request.frames), with_dark=True)
             images = self._stack(frames)
-            full = 255.0 if frames[0].image.encoding == "mono8" else 4095.0
-            result = flat_field_maps(
-                images, dark=dark, saturation_level=full,
-                polynomial_degree=int(self.get_parameter("flat_field_degree").value))
+            self._check_size(images, self._camera(info))
+            if dark is not None and dark.shape != images.shape[1:]:
+                raise FingerpsCalibError(
+                    f"the dark frame is {dark.shape[1]}x{dark.shape[0]}, the images "
+                    f"{images.shape[2]}x{images.shape[1]}; recapture")
+            result = flat_field_maps(images, dark=dark, saturation_level=self._full_scale(frames),
+                                     polynomial_degree=degree)
         except FingerpsCalibError as exc:
             response.success, response.message = False, str(exc)
-            self.get_logger().error(f"flat-field calibration refused: {exc}")
+            if self._flat is not None:
+                response.message += f" [the flat field of {self._flat.date} stays in force]"
+            self.get_logger().error(f"flat-field calibration refused: {response.message}")
             return response
-        header = Header(stamp=self.get_clock().now().to_msg(),
-                        frame_id=frames[0].header.frame_id)
-        msg = FlatField(
-            header=header, camera_name=str(self.get_parameter("camera_name").value),
-            maps=[array_to_image(m, encoding="32FC1", header=header) for m in result.portions],
-            relative_intensities=[float(x) for x in result.relative_intensities])
-        self._flat = msg
+        record = FlatFieldRecord(
+            camera_name=str(self.get_parameter("camera_name").value),
+            frame_id=frames[0].header.frame_id or DEFAULT_FRAME_ID,
+            stamp_ns=self.get_clock().now().nanoseconds, portions=result.portions,
+            relative_intensities=result.relative_intensities,
+            fit_residuals=result.fit_residuals, polynomial_degree=degree)
+        msg = self._flat_message(record)
+        self._flat = record
         self._pub_flat.publish(msg)
-        if self._lights is not None and len(self._lights.directions) == len(frames):
-            self._lights.relative_intensities = list(msg.relative_intensities)
-            self._pub_lights.publish(self._lights)
+        if self._lights is not None and self._lights.lights.led_count == len(frames):
+            self._lights_msg = self._lights_message(self._lights)
+            self._pub_lights.publish(self._lights_msg)
         response.success, response.flat_field = True, msg
-        response.message = (f"{len(frames)} flat-field maps; relative intensities "
-                            + ", ".join(f"{x:.2f}" for x in result.relative_intensities))
+        response.message = (
+            f"{len(frames)} flat-field maps; relative intensities "
+            + ", ".join(f"{x:.2f}" for x in result.relative_intensities)
+            + "; fit residual max " + f"{100 * np.max(result.fit_residuals):.2f}%"
+            + self._save_flat(record))
         self.get_logger().info(response.message)
         return response
+
+    def _save_flat(self, record: FlatFieldRecord) -> str:
+        if self._dir is None:
+            return "; not saved (calibration_dir is empty)"
+        try:
+            path = save_flat_field(self._dir, record)
+        except FingerpsCalibError as exc:
+            self.get_logger().error(f"flat field in force but NOT SAVED: {exc}")
+            return f"; NOT SAVED: {exc}"
+        text = f"; saved to {path}"
+        try:
+            picture = flat_field_picture(
+                record.portions, relative_intensities=record.relative_intensities,
+                fit_residuals=record.fit_residuals, title="flat field in force",
+                lines=[f"camera {record.camera_name}, {record.date}; polynomial degree "
+                       f"{record.polynomial_degree}"])
+            text += f"; picture {write_png(self._dir / FLAT_FIELD_PICTURE, picture)}"
+        except FingerpsCalibError as exc:
+            self.get_logger().warning(f"no picture of the flat field: {exc}")
+        return text
+
+    @staticmethod
+    def _flat_message(record: FlatFieldRecord) -> FlatField:
+        header = Header(frame_id=record.frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(int(record.stamp_ns), 1_000_000_000)
+        return FlatField(
+            header=header, camera_name=record.camera_name,
+            maps=[array_to_image(m, encoding="32FC1", header=header) for m in record.portions],
+            relative_intensities=[float(x) for x in record.relative_intensities])
+
+
+class _RefusedError(FingerpsCalibError):
+    """A calibration that failed its checks, with the list of problems."""
+
+    def __init__(self, message: str, problems: tuple[str, ...]) -> None:
+        super().__init__(message)
+        self.problems = problems
+
+
+def _picture(images: np.ndarray, result: LightCalibrationResult, camera: _Camera,
+             directions: np.ndarray, placement_directions: list[np.ndarray], *, title: str,
+             lines: list[str], problems: tuple[str, ...] = ()) -> np.ndarray:
+    """The operator's picture of a light calibration (in the raw image's pixels)."""
+    return lights_picture(
+        images,
+        highlights_uv=distort_points(result.highlights_uv, camera.matrix, camera.distortion),
+        directions_optical=directions, edge_points_uv=result.edge_points_uv,
+        outline_uv=sphere_outline(result.sphere_center_optical_m, result.radius_m,
+                                  camera.matrix, camera.distortion),
+        placement_directions=placement_directions, title=title, lines=lines,
+        problems=problems)
+
+
+def _pixels(frame: TaggedFrame) -> np.ndarray:
+    try:
+        return image_to_array(frame.image)
+    except FingerpsReconError as exc:
+        raise FingerpsCalibError(f"LED {frame.led_index}: {exc}") from exc
+
+
+def _distortion(model: str, coefficients: np.ndarray) -> np.ndarray | None:
+    coefficients = np.asarray(coefficients, dtype=np.float64).ravel()
+    if not np.any(coefficients):
+        return None
+    if model in ("plumb_bob", "rational_polynomial"):
+        return coefficients
+    raise FingerpsCalibError(
+        f"distortion model {model!r} is not supported by the light calibration; give "
+        "rectified images with plumb_bob intrinsics")
+
+
+def _check_reference_point(value: object) -> str | None:
+    try:
+        point = [float(x) for x in value]  # a ROS double array is an array.array
+    except (TypeError, ValueError):
+        point = []
+    if len(point) != 3 or not point[2] > 0:
+        return "must be three numbers (x, y, z) in metres with z > 0"
+    return None
+
+
+def _lights_summary(record: LightsRecord) -> str:
+    lights = record.lights
+    centre = 1e3 * lights.sphere_center_optical_m
+    text = (f"{lights.led_count} LEDs calibrated from {len(lights.placements)} sphere "
+            f"placement(s); sphere centre ({centre[0]:.2f}, {centre[1]:.2f}, {centre[2]:.2f}) "
+            f"mm, edge rms {lights.edge_rms_px:.2f} px, highlight residual max "
+            f"{np.nanmax(lights.residuals_px):.2f} px")
+    tri = lights.triangulation
+    if tri is not None:
+        ref = 1e3 * tri.reference_point_optical_m
+        text += (f"; LED positions triangulated (residual max "
+                 f"{1e3 * np.nanmax(tri.position_residuals_m):.2f} mm, rays "
+                 f"{np.nanmin(tri.ray_angles_deg):.1f}-{np.nanmax(tri.ray_angles_deg):.1f} deg "
+                 f"apart), directions from ({ref[0]:.1f}, {ref[1]:.1f}, {ref[2]:.1f}) mm")
+    return text
+
+
+def _lights_lines(record: LightsRecord) -> list[str]:
+    """Text under the light calibration's picture."""
+    lights = record.lights
+    lines = [f"camera {record.camera_name}, {record.date}", _lights_summary(record)]
+    tri = lights.triangulation
+    for k, d in enumerate(lights.directions_optical):
+        polar = np.degrees(np.arccos(np.clip(-d[2], -1, 1)))
+        azimuth = np.degrees(np.arctan2(-d[1], d[0]))
+        line = (f"LED {k}: {polar:.1f} deg from the view axis, azimuth {azimuth:.0f} deg, "
+                f"highlight residual {lights.residuals_px[k]:.2f} px")
+        if tri is not None:
+            q = 1e3 * tri.led_positions_optical_m[k]
+            line += (f", at ({q[0]:.1f}, {q[1]:.1f}, {q[2]:.1f}) mm +- "
+                     f"{1e3 * tri.position_residuals_m[k]:.2f} mm")
+        lines.append(line)
+    return lines
 
 
 def main(args: list[str] | None = None) -> int:

@@ -171,7 +171,8 @@ def load_camera_info(path: str | os.PathLike[str]) -> CameraIntrinsics:
     except FileNotFoundError:
         raise FingerpsCalibError(
             f"camera info file {path} does not exist; calibrate the camera "
-            "(`ros2 run camera_calibration cameracalibrator`) and save the result there, "
+            "(`ros2 run fingerps_calib calibrate_camera` on checkerboard images, or "
+            "`ros2 run camera_calibration cameracalibrator`) and save the result there, "
             "or pass the right path"
         ) from None
     except OSError as exc:

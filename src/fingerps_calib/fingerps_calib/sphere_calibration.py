@@ -18,7 +18,7 @@ without intrinsics (orthographic camera, directions in the PS frame).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -26,6 +26,11 @@ from scipy import ndimage, optimize
 
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_recon.frames import optical_to_ps
+
+#: Gaussian smoothing (pixels) of the silhouette search, tried in turn while the sphere fit's
+#: rms exceeds the limit: noisy images need more. A real misfit (a wrong camera matrix, an
+#: occluded or out-of-round silhouette) stays above the limit at every smoothing.
+_EDGE_SMOOTHING_PX = (0.5, 1.0, 1.5, 2.0)
 
 #: Relative thresholds at which the highlight centroid is recomputed to measure its
 #: stability (`LightCalibrationResult.residuals_px`); the middle one gives the centroid.
@@ -89,6 +94,20 @@ class LightCalibrationResult:
     ok : bool
         Every check passed; if False, ``problems`` says why and what to do.
     problems : tuple of str
+    highlight_points_optical_m : (K, 3) float64
+        The surface points S1 where the rays through the highlights meet the sphere,
+        metres; NaN where not found. With ``directions_optical`` they are the rays towards
+        the LEDs that `fingerps_calib.led_triangulation` intersects.
+    radius_m : float
+        The sphere radius used.
+    edge_points_uv : (N, 2) float64
+        The silhouette points found, raw (distorted) pixel coordinates.
+    highlight_contrast : (K,) float64
+        Peak of each highlight above the disc's median, divided by that of the brightest
+        part of the disc away from the highlight (99.9th percentile beyond twice the blob's
+        radius + 5 px); NaN where not found. ~30 on the simulated rig.
+    saturated_px : (K,) int64
+        Pixels of each highlight at or above the saturation level (0 if unknown).
     """
 
     directions_optical: np.ndarray
@@ -98,6 +117,11 @@ class LightCalibrationResult:
     edge_rms_px: float
     ok: bool
     problems: tuple[str, ...]
+    highlight_points_optical_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    radius_m: float = float("nan")
+    edge_points_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    highlight_contrast: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    saturated_px: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def directions_ps(self) -> np.ndarray:
@@ -119,6 +143,12 @@ class OrthographicLightResult:
     circle_radius_px : float
     ok : bool
     problems : tuple of str
+    edge_rms_px : float
+        RMS distance of the silhouette points from the fitted circle, pixels.
+    edge_points_uv : (N, 2) float64
+        The silhouette points.
+    residuals_px : (K,) float64
+        Stability of each highlight centroid, as `LightCalibrationResult.residuals_px`.
     """
 
     directions_ps: np.ndarray
@@ -127,6 +157,9 @@ class OrthographicLightResult:
     circle_radius_px: float
     ok: bool
     problems: tuple[str, ...]
+    edge_rms_px: float = float("nan")
+    edge_points_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 # --------------------------------------------------------------------------- edge points
@@ -359,8 +392,21 @@ def highlight_centroid(
     FingerpsCalibError
         Bad shapes, or no highlight in the disc.
     """
-    u, v, _ = _highlight(image, disc_center_uv, disc_radius_px, (relative_threshold,))
-    return u, v
+    found = _highlight(image, disc_center_uv, disc_radius_px, (relative_threshold,))
+    return found.u, found.v
+
+
+@dataclass(frozen=True)
+class _Highlight:
+    """One highlight: centroid (u, v), its stability and the numbers the checks use."""
+
+    u: float
+    v: float
+    spread_px: float
+    contrast: float        # peak - background (the disc's median)
+    shading: float         # brightest part of the disc away from the blob - background
+    saturated_px: int      # pixels of the chosen blob at or above the saturation level
+    background: float
 
 
 def _highlight(
@@ -368,7 +414,9 @@ def _highlight(
     disc_center_uv: np.ndarray,
     disc_radius_px: float,
     thresholds: tuple[float, ...],
-) -> tuple[float, float, float]:
+    *,
+    saturation_level: float | None = None,
+) -> _Highlight:
     """Highlight centroid at the middle threshold and its stability (see module doc)."""
     image = np.asarray(image)
     if image.ndim != 2 or not np.issubdtype(image.dtype, np.number):
@@ -386,8 +434,12 @@ def _highlight(
             "pixel of the image; check the sphere fit"
         )
     values = image.astype(np.float64)
-    background = float(np.median(values[disc]))
-    peak = float(values[disc].max())
+    inside = values[disc]
+    background = float(np.median(inside))
+    peak = float(inside.max())
+    if saturation_level is not None and background >= 0.95 * saturation_level:
+        raise FingerpsCalibError(
+            "the whole sphere is saturated; lower the exposure or the LED level")
     if not peak > background:
         raise FingerpsCalibError(
             "no highlight inside the sphere's disc (it is uniform); check that the LED lit "
@@ -401,6 +453,20 @@ def _highlight(
     best = 1 + int(np.argmax(weight))
     blob = labels == best
     centroid = _weighted_centroid(np.where(blob, excess, 0.0))
+    # What the highlight must stand out from: the brightest part of the disc away from it
+    # (diffuse shading, noise, other reflections), beyond twice the blob's radius + 5 px
+    # (at most a quarter of the disc's radius: a "blob" of diffuse shading is no highlight).
+    reach = min(2.0 * np.sqrt(blob.sum() / np.pi) + 5.0, 0.25 * disc_radius_px)
+    away = disc & ((uu - centroid[0]) ** 2 + (vv - centroid[1]) ** 2 > reach**2)
+    floor = 1.0 if np.issubdtype(image.dtype, np.integer) else 1e-12
+    elsewhere = float(np.percentile(values[away], 99.9)) if np.any(away) else background
+    shading = max(elsewhere - background, floor)
+    saturated = 0
+    if saturation_level is not None:
+        # The saturated plateau holding the blob (it may reach beyond the blob's cut).
+        hot, _ = ndimage.label(disc & (values >= saturation_level), structure=np.ones((3, 3)))
+        touched = np.unique(hot[blob & (hot > 0)])
+        saturated = int(np.isin(hot, touched).sum()) if touched.size else 0
     # Stability: the centroid at other thresholds, within the component holding this blob.
     spread = 0.0
     seed = np.unravel_index(np.argmax(np.where(blob, values, -np.inf)), values.shape)
@@ -413,7 +479,8 @@ def _highlight(
             continue
         other = _weighted_centroid(np.where(lab == lab[seed], ex, 0.0))
         spread = max(spread, float(np.hypot(*(other - centroid))))
-    return float(centroid[0]), float(centroid[1]), spread
+    return _Highlight(float(centroid[0]), float(centroid[1]), spread, peak - background,
+                      shading, saturated, background)
 
 
 # ---------------------------------------------------------------------- light direction
@@ -457,6 +524,13 @@ def light_direction(
         raise FingerpsCalibError(
             f"highlight_uv {uv.shape} / sphere_center {s.shape}: expected (2,) and (3,)"
         )
+    return _mirror_ray(uv, s, radius_m, k)[0]
+
+
+def _mirror_ray(
+    uv: np.ndarray, s: np.ndarray, radius_m: float, k: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit direction towards the light and the surface point S1 (Eq. 10)."""
     d = _rays(uv[None, :], k)[0]
     along = d @ s
     disc = along**2 - s @ s + radius_m**2
@@ -469,7 +543,7 @@ def light_direction(
     normal = (s1 - s) / radius_m
     r = -d
     light = 2.0 * (normal @ r) * normal - r
-    return light / np.linalg.norm(light)
+    return light / np.linalg.norm(light), s1
 
 
 # --------------------------------------------------------------------------- calibration
@@ -484,14 +558,40 @@ def calibrate_lights(
     distortion: np.ndarray | None = None,
     edge_rms_limit_px: float = 0.5,
     residual_limit_px: float = 1.0,
+    saturation_level: float | None = None,
+    min_highlight_contrast: float = 2.0,
+    max_saturated_fraction: float = 0.01,
+    require_whole_sphere: bool = False,
+    expected_distance_m: tuple[float, float] | None = None,
 ) -> LightCalibrationResult:
     """Light directions of K LEDs from K images of a shiny sphere (paper Sec. 3.1).
 
-    Checks, each failing one adds a reason to ``problems`` and makes ``ok`` False: the
-    sphere is found and its fit converged in front of the camera; the silhouette fits within
-    ``edge_rms_limit_px`` and is seen along most of its outline; every highlight is found
-    inside the disc, its stability (``residuals_px``) is within ``residual_limit_px``, and
-    its direction points to the camera side (z_optical < 0).
+    The silhouette points (`sphere_edge_points`) are searched with a Gaussian smoothing of
+    0.5 px, raised to 1, 1.5 and 2 px while the sphere fit's rms exceeds
+    ``edge_rms_limit_px``: noise breaks up a faint edge, and a wider smoothing only pulls
+    the points a little inwards (on the simulated rig with four times the read noise and a
+    quarter of the full well: 1.7 px rms at 0.5 px, 0.35 px rms and a 0.3 mm centre error
+    at 1.5 px).
+
+    Checks, each failing one adds a reason to ``problems`` and makes ``ok`` False:
+
+    - the sphere is found (a silhouette standing out from the noise), its fit converged in
+      front of the camera and fits to within five times ``edge_rms_limit_px`` (else nothing
+      more is checked: the object is not the sphere); the silhouette fits within
+      ``edge_rms_limit_px`` and is seen along most of its outline; with
+      ``require_whole_sphere`` the silhouette lies wholly inside the image;
+    - with ``expected_distance_m``, the fitted centre's distance from the camera lies in
+      that range. The silhouette is a cone, the same for a sphere of radius r at distance d
+      as for one of radius 2r at 2d, so neither the edge residual nor the directions can
+      reveal a wrong radius: only the distance it implies can;
+    - for each LED: the sphere's disc is not saturated; the highlight's peak above the
+      disc's median is at least ``min_highlight_contrast`` times that of the brightest part
+      of the disc away from it (diffuse shading, noise), and at least a fifth of the median
+      highlight's (otherwise the LED did not light, or its
+      reflection misses the sphere); with a known saturation level its saturated blob covers
+      at most ``max_saturated_fraction`` of the disc; it is not at the limb; its stability
+      (``residuals_px``) is within ``residual_limit_px``; and its direction points to the
+      camera side (z_optical < 0).
 
     Parameters
     ----------
@@ -508,6 +608,21 @@ def calibrate_lights(
         before the geometry. Without it the images must be undistorted already.
     edge_rms_limit_px, residual_limit_px : float
         Limits of the checks above, pixels.
+    saturation_level : float, optional
+        Full-scale value of the images; default the dtype's maximum for integer images,
+        none (no saturation checks) for floating-point images.
+    min_highlight_contrast : float
+        See the checks.
+    max_saturated_fraction : float
+        See the checks. A saturated plateau's centroid is its centre, so a symmetric one does
+        no harm (on the simulated rig a 4 px blur with 460 saturated pixels still gives
+        0.06 deg); but the plateau hides the peak, and it is the same at every threshold, so
+        the stability check cannot see a bloom or a second reflection merged into it.
+    require_whole_sphere : bool
+        Refuse a sphere cut by the image border (a partial outline still gives a fit, but
+        a less certain one).
+    expected_distance_m : (float, float), optional
+        Range of the distance from the camera centre to the sphere centre, metres.
 
     Returns
     -------
@@ -527,33 +642,73 @@ def calibrate_lights(
     k = _camera_matrix(camera_matrix)
     if not radius_m > 0:
         raise FingerpsCalibError(f"radius_m = {radius_m} must be positive (metres)")
-    n_led = stack.shape[0]
+    if saturation_level is None and np.issubdtype(stack.dtype, np.integer):
+        saturation_level = float(np.iinfo(stack.dtype).max)
+    n_led, h, w = stack.shape
     directions = np.full((n_led, 3), np.nan)
+    points = np.full((n_led, 3), np.nan)
     highlights = np.full((n_led, 2), np.nan)
     residuals = np.full(n_led, np.nan)
+    contrast = np.full(n_led, np.nan)
+    saturated = np.zeros(n_led, np.int64)
     problems: list[str] = []
+    raw_edges = np.zeros((0, 2))
 
     def result(center: np.ndarray, edge_rms: float) -> LightCalibrationResult:
         return LightCalibrationResult(
-            directions, highlights, residuals, center, edge_rms, not problems, tuple(problems)
+            directions, highlights, residuals, center, edge_rms, not problems,
+            tuple(problems), highlight_points_optical_m=points, radius_m=float(radius_m),
+            edge_points_uv=raw_edges, highlight_contrast=contrast, saturated_px=saturated,
         )
 
-    raw_edges = sphere_edge_points(stack, mask=mask)
-    if len(raw_edges) < 20:
+    for smoothing in _EDGE_SMOOTHING_PX:
+        raw_edges = sphere_edge_points(stack, mask=mask, smoothing_sigma_px=smoothing)
+        if len(raw_edges) < 20:
+            problems.append(
+                "sphere not found: fewer than 20 points of its silhouette; put the whole "
+                "sphere in view against a dark background (or pass a mask)"
+            )
+            return result(np.full(3, np.nan), float("nan"))
+        edges = _undistort(raw_edges, k, distortion)
+        fit = fit_sphere_center(edges, camera_matrix=k, radius_m=radius_m)
+        if fit.rms_residual_px <= edge_rms_limit_px:
+            break
+    center = fit.center_optical_m
+    disc_center_raw, disc_radius = _fit_circle(raw_edges)
+    step = _silhouette_contrast(stack, disc_center_raw, disc_radius)
+    if mask is None and not step >= 2.0:
         problems.append(
-            "sphere not found: fewer than 20 edge points; put the whole sphere in view "
-            "against a dark background (or pass a mask)"
+            f"sphere not found: no clear silhouette (the outline found stands out only "
+            f"{step:.1f}x the noise); put the whole sphere in view against a dark background "
+            "(or pass a mask)"
         )
         return result(np.full(3, np.nan), float("nan"))
-    edges = _undistort(raw_edges, k, distortion)
-    fit = fit_sphere_center(edges, camera_matrix=k, radius_m=radius_m)
-    center = fit.center_optical_m
     if not fit.converged or not center[2] > radius_m:
         problems.append(
             f"sphere fit failed (converged={fit.converged}, centre {center.round(4).tolist()}"
             " m); check the radius and the camera matrix"
         )
         return result(center, fit.rms_residual_px)
+    if fit.rms_residual_px > 5.0 * edge_rms_limit_px:
+        problems.append(
+            f"the object in view is not the sphere: its silhouette fits a sphere to "
+            f"{fit.rms_residual_px:.1f} px rms (at most {edge_rms_limit_px} px); put the "
+            "sphere in view, alone, against a dark background (if it is the sphere, check "
+            "the camera matrix)"
+        )
+        return result(center, fit.rms_residual_px)
+    if require_whole_sphere:
+        sides = [name for name, outside in (
+            ("left", disc_center_raw[0] - disc_radius < 1.0),
+            ("right", disc_center_raw[0] + disc_radius > w - 2.0),
+            ("top", disc_center_raw[1] - disc_radius < 1.0),
+            ("bottom", disc_center_raw[1] + disc_radius > h - 2.0),
+        ) if outside]
+        if sides:
+            problems.append(
+                f"the sphere is cut by the image border ({', '.join(sides)}): move it towards "
+                "the middle of the view so that all of it is seen"
+            )
     expected = np.pi * 2 * fit.silhouette_radius_px
     if len(raw_edges) < 0.5 * expected:
         problems.append(
@@ -563,33 +718,71 @@ def calibrate_lights(
     if fit.rms_residual_px > edge_rms_limit_px:
         problems.append(
             f"sphere silhouette fits to {fit.rms_residual_px:.2f} px rms > "
-            f"{edge_rms_limit_px} px; check the radius, the camera matrix and the focus"
+            f"{edge_rms_limit_px} px; check the camera matrix, the focus and that nothing "
+            "else bright touches the sphere"
         )
+    if expected_distance_m is not None:
+        near, far = expected_distance_m
+        distance = float(np.linalg.norm(center))
+        if not near <= distance <= far:
+            middle = 0.5 * (near + far)
+            problems.append(
+                f"the sphere centre fits at {1e3 * distance:.1f} mm from the camera, outside "
+                f"the expected {1e3 * near:.0f}-{1e3 * far:.0f} mm: is the radius right? "
+                f"{1e3 * radius_m:.2f} mm was given; at {1e3 * middle:.0f} mm this sphere "
+                f"would have a radius of {1e3 * radius_m * middle / distance:.2f} mm"
+            )
 
-    disc_center = np.asarray(fit.silhouette_center_uv)
-    # The disc must lie in the distorted image, where the highlights are searched.
-    if distortion is not None:
-        (disc_center_raw, disc_radius) = _fit_circle(raw_edges)
-    else:
-        disc_center_raw, disc_radius = disc_center, fit.silhouette_radius_px
+    # The disc is searched in the raw (distorted) image, where the highlights are.
     search_radius = disc_radius - 2.0
+    found: list[_Highlight | None] = []
     for i in range(n_led):
         try:
-            u, v, spread = _highlight(stack[i], disc_center_raw, search_radius,
-                                      _STABILITY_THRESHOLDS)
+            found.append(_highlight(stack[i], disc_center_raw, search_radius,
+                                    _STABILITY_THRESHOLDS, saturation_level=saturation_level))
         except FingerpsCalibError as exc:
             problems.append(f"LED {i}: {exc}")
+            found.append(None)
+    typical = np.median([f.contrast for f in found if f is not None]) if any(found) else 0.0
+    disc_area = np.pi * disc_radius**2
+    for i, spot in enumerate(found):
+        if spot is None:
             continue
+        contrast[i] = spot.contrast / spot.shading
+        saturated[i] = spot.saturated_px
+        if contrast[i] < min_highlight_contrast:
+            problems.append(
+                f"LED {i}: no highlight: the brightest spot on the sphere stands out only "
+                f"{contrast[i]:.1f}x as much as the rest of the sphere (at least "
+                f"{min_highlight_contrast:g}x needed); check that LED {i} lights and that its "
+                "reflection falls on the sphere; if the whole sphere looks bright, lower the "
+                "exposure"
+            )
+            continue
+        if spot.contrast < 0.2 * typical:
+            problems.append(
+                f"LED {i}: no highlight: the brightest spot on the sphere is only "
+                f"{100 * spot.contrast / typical:.0f}% as bright as the other LEDs' "
+                f"highlights; check that LED {i} lights and that its reflection falls on the "
+                "sphere"
+            )
+            continue
+        if saturation_level is not None and spot.saturated_px > max_saturated_fraction * disc_area:
+            problems.append(
+                f"LED {i}: the highlight is saturated into a blob of {spot.saturated_px} px "
+                f"(at most {max_saturated_fraction * disc_area:.0f} px): its centre is "
+                "uncertain; lower the exposure or the LED level"
+            )
+        u, v = spot.u, spot.v
         uv = _undistort(np.array([[u, v]]), k, distortion)[0]
-        highlights[i], residuals[i] = uv, spread
+        highlights[i], residuals[i] = uv, spot.spread_px
         if np.hypot(u - disc_center_raw[0], v - disc_center_raw[1]) > disc_radius - 3.0:
             problems.append(
                 f"LED {i}: highlight at ({u:.1f}, {v:.1f}) is at the sphere's limb; move the "
                 "sphere nearer the optical axis"
             )
         try:
-            directions[i] = light_direction(uv, sphere_center=center, radius_m=radius_m,
-                                            camera_matrix=k)
+            directions[i], points[i] = _mirror_ray(uv, center, radius_m, k)
         except FingerpsCalibError as exc:
             problems.append(f"LED {i}: {exc}")
             continue
@@ -598,11 +791,11 @@ def calibrate_lights(
                 f"LED {i}: direction {directions[i].round(3).tolist()} points away from the "
                 "camera side (z_optical >= 0); the highlight is probably a stray reflection"
             )
-        if spread > residual_limit_px:
+        if spot.spread_px > residual_limit_px:
             problems.append(
-                f"LED {i}: highlight centroid moves {spread:.2f} px with the threshold "
-                f"(> {residual_limit_px} px); a second reflection or saturation bloom is "
-                "merged with it, clean the sphere or lower the exposure"
+                f"LED {i}: highlight centroid moves {spot.spread_px:.2f} px with the "
+                f"threshold (> {residual_limit_px} px); a second reflection or saturation "
+                "bloom is merged with it, clean the sphere or lower the exposure"
             )
     return result(center, fit.rms_residual_px)
 
@@ -633,27 +826,32 @@ def calibrate_lights_orthographic(
     n_led = stack.shape[0]
     directions = np.full((n_led, 3), np.nan)
     highlights = np.full((n_led, 2), np.nan)
+    residuals = np.full(n_led, np.nan)
     edges = sphere_edge_points(stack, mask=mask)
     if len(edges) < 20:
         return OrthographicLightResult(
             directions, highlights, np.full(2, np.nan), float("nan"), False,
             ("sphere not found: fewer than 20 edge points; pass the sphere's mask",),
+            edge_points_uv=edges, residuals_px=residuals,
         )
     center, rho = _fit_circle(edges)
+    edge_rms = float(np.sqrt(np.mean((np.linalg.norm(edges - center, axis=1) - rho) ** 2)))
     problems = []
     for i in range(n_led):
         try:
-            u, v, _ = _highlight(stack[i], center, rho - 2.0, (0.5,))
+            found = _highlight(stack[i], center, rho - 2.0, _STABILITY_THRESHOLDS)
         except FingerpsCalibError as exc:
             problems.append(f"LED {i}: {exc}")
             continue
-        highlights[i] = u, v
+        u, v = found.u, found.v
+        highlights[i], residuals[i] = (u, v), found.spread_px
         nx, ny = (u - center[0]) / rho, -(v - center[1]) / rho
         normal = np.array([nx, ny, np.sqrt(max(0.0, 1.0 - nx * nx - ny * ny))])
         normal /= np.linalg.norm(normal)
         directions[i] = 2.0 * normal[2] * normal - np.array([0.0, 0.0, 1.0])
     return OrthographicLightResult(
-        directions, highlights, center, float(rho), not problems, tuple(problems)
+        directions, highlights, center, float(rho), not problems, tuple(problems),
+        edge_rms_px=edge_rms, edge_points_uv=edges, residuals_px=residuals,
     )
 
 
@@ -670,6 +868,28 @@ def _as_stack(images: np.ndarray, name: str) -> np.ndarray:
             "numbers"
         )
     return stack.astype(np.float64)
+
+
+def _silhouette_contrast(stack: np.ndarray, center: np.ndarray, radius: float) -> float:
+    """Step across a circular outline in the pixel-wise maximum, in units of the noise.
+
+    Median of a ring 2-6 px inside minus that of a ring 2-6 px outside, divided by the
+    outside ring's robust standard deviation (at least one digital unit for integer
+    images). ~12 for the simulated rig's sphere, ~3 with four times its read noise, 0 for
+    an empty view.
+    """
+    field = stack.max(axis=0).astype(np.float64)
+    h, w = field.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    distance = np.hypot(uu - center[0], vv - center[1])
+    inner = field[(distance > radius - 6) & (distance < radius - 2)]
+    outer = field[(distance > radius + 2) & (distance < radius + 6)]
+    if inner.size == 0 or outer.size == 0:
+        return 0.0
+    background = float(np.median(outer))
+    sigma = 1.4826 * float(np.median(np.abs(outer - background)))
+    floor = 1.0 if np.issubdtype(stack.dtype, np.integer) else 1e-12
+    return (float(np.median(inner)) - background) / max(sigma, floor)
 
 
 def _camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ from fingerps_recon.image_conversion import array_to_image, image_to_array
 from fingerps_recon.node_runner import run_node
 from fingerps_recon.normal_map import normal_map_rgb
 from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
-from fingerps_recon.pipeline import Model, ReconstructionOptions, reconstruct
+from fingerps_recon.pipeline import Model, Projection, ReconstructionOptions, reconstruct
 from fingerps_recon.point_cloud_conversion import points_to_cloud
 
 _FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
@@ -37,11 +37,15 @@ class ReconNode(Node):
         self._checks = ParameterChecks(self)
         self._checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
         self._checks.add("model", one_of(*(m.value for m in Model)))
+        self._checks.add("projection", one_of(*(m.value for m in Projection)))
         p = self.declare_parameter
         p("model", Model.LAMBERT.value, descriptor(
             "Reflectance model of the normals: lambert (Lambertian photometric stereo) or hk "
             "(the paper's simplified Hanrahan-Krueger skin model, initialised from lambert)"))
-        p("hk_iterations", 10, descriptor(
+        p("projection", Projection.PERSPECTIVE.value, descriptor(
+            "Camera model of the views, the integration and the points: perspective (from "
+            "the burst's camera_info) or orthographic"))
+        p("hk_iterations", 5, descriptor(
             "Levenberg-Marquardt iterations of the HK solver", min_value=1, max_value=100,
             integer=True))
         p("queue_depth", 2, descriptor(
@@ -145,6 +149,7 @@ class ReconNode(Node):
         g = self.get_parameter
         return ReconstructionOptions(
             model=Model(g("model").value), hk_iterations=int(g("hk_iterations").value),
+            projection=Projection(g("projection").value),
             mask_threshold=float(g("mask_threshold").value), enhance=bool(g("enhance").value),
             w=int(g("w").value), k=float(g("k").value),
             working_distance_m=float(g("working_distance").value))
@@ -170,11 +175,14 @@ class ReconNode(Node):
         k_matrix = np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3)
         if k_matrix[0, 0] <= 0:
             raise FingerpsReconError("the burst's camera_info has no intrinsics (fx <= 0)")
+        leds = np.array([[p.x, p.y, p.z] for p in lights.led_positions])
         result = reconstruct(
             images, lights_ps=optical_to_ps(directions), camera_matrix=k_matrix,
             full_scale=full_scale,
             intensities=intensities if intensities.size == len(images) else None,
-            portions=maps, dark=dark, options=self._options())
+            portions=maps, dark=dark,
+            led_positions_optical=leds if len(leds) == len(images) else None,
+            options=self._options())
         header = burst.header
         normals_optical = ps_to_optical(result.normals_ps).astype(np.float32)
         self._pub_normals.publish(array_to_image(normals_optical, encoding="32FC3",
