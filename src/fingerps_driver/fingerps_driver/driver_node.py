@@ -26,7 +26,7 @@ import os
 import statistics
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import numpy as np
@@ -106,6 +106,14 @@ def _stamp(ns: int) -> Time:
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
+def _sphere_center_problem(value: list[float]) -> str | None:
+    if len(value) != 3 or not all(np.isfinite(value)):
+        return "must be three finite numbers [x, y, z] in metres"
+    if value[2] <= 0.02:
+        return "z must be more than 0.02 m in front of the camera"
+    return None
+
+
 def _array_value(node: Node, name: str) -> list:
     """An array parameter's value as a list; [] when it is not set."""
     value = node.get_parameter_or(name, Parameter(name, value=None)).value
@@ -183,6 +191,7 @@ class DriverNode(Node):
         checks.add("sim.scene", one_of(*(s.value for s in Scene)))
         checks.add("sim.reflectance", one_of(*(r.value for r in Reflectance)))
         checks.add("sim.bit_depth", lambda v: None if v in (8, 12) else "must be 8 or 12")
+        checks.add("sim.sphere_center", _sphere_center_problem)
         checks.add("led_order", lambda v: check_led_order(list(v), self._led_count))
         checks.add("exposure_times",
                    lambda v: check_exposures(list(v) if v is not None else None,
@@ -287,6 +296,10 @@ class DriverNode(Node):
                                          read_only=True))
         p("sim.seed", 0, descriptor("Seed of the simulated sensor noise", min_value=0,
                                     integer=True, read_only=True))
+        p("sim.sphere_center", list(RigConfig().sphere_center_optical_m), descriptor(
+            "Where the simulated calibration sphere is, [x, y, z] metres in the optical "
+            "frame; move it between calibrate_lights calls (add_placement) to estimate the "
+            "LED positions"))
         p("sim.board_control", "", descriptor(
             "Control socket of a board_emulator process (its --control): with a port other "
             "than 'sim', the sim and folder cameras see the LEDs that emulator has lit",
@@ -305,6 +318,10 @@ class DriverNode(Node):
         for param in parameters:
             if param.name == "rate":
                 self._apply_rate(param.value)
+            elif param.name == "sim.sphere_center" and self._rig is not None:
+                with self._lock:  # not in the middle of a burst
+                    self._rig = SimulatedRig(replace(
+                        self._rig.config, sphere_center_optical_m=tuple(param.value)))
 
     def _apply_rate(self, rate: float) -> None:
         if self._rate_timer is not None:
@@ -417,7 +434,8 @@ class DriverNode(Node):
         size = {"width": width, "height": height} if width else {}
         try:
             config = RigConfig(reflectance=Reflectance(self._param("sim.reflectance")),
-                               bit_depth=bit_depth, **size)
+                               bit_depth=bit_depth, **size,
+                               sphere_center_optical_m=tuple(self._param("sim.sphere_center")))
         except FingerpsDriverError as exc:
             raise StartupError(str(exc)) from None
         rig = self._rig = SimulatedRig(config)
@@ -433,7 +451,7 @@ class DriverNode(Node):
 
         def render(lit: tuple[int, ...] | list[int]) -> np.ndarray:
             scene = Scene(self.get_parameter("sim.scene").value)
-            return rig.render(scene, list(lit), rng=rng)
+            return self._rig.render(scene, list(lit), rng=rng)
 
         return SimulatedCamera(render, self._lit_source(), width=config.width,
                                height=config.height, encoding=encoding)
