@@ -21,6 +21,11 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
 - cloud: ``height_to_distance`` + ``depth_to_points``.
 - lambert_total: flat_field + mask + lambertian + transform + integration_fast + cloud run
   back to back; lambert_total_perspective: the same with the perspective integration.
+- pipeline_lambert / pipeline_hk: ``fingerps_recon.pipeline.reconstruct`` as recon_node
+  calls it after the demo's calibration: near lights from the LED positions, white-target
+  irradiance, perspective views and integration, ridge transform, points. These are the
+  figures the issue's targets (Lambertian <= 30 ms, HK <= 150 ms burst -> point cloud) are
+  about; ``recon.ms.lambert_total`` / ``recon.ms.hk_total`` are the hand-chained stages.
 - hk_solve / hk_total: ``solve_hk`` (10 iterations) from the Lambertian start, and the
   HK path (Lambertian path with the HK solve after the Lambertian one).
 
@@ -135,6 +140,13 @@ def _burst(rig: SimulatedRig) -> _Burst:
     return _Burst(images=images, portions=flat.portions, intensities=flat.relative_intensities,
                   lights_ps=rig.light_directions_ps(), lights_near_ps=near.astype(np.float32),
                   camera_matrix=np.asarray(rig.camera_matrix), full_scale=rig.max_value())
+
+
+from fingerps_recon.pipeline import (  # noqa: E402
+    Model,
+    ReconstructionOptions,
+    reconstruct,
+)
 
 
 def _time(fn: Callable[[], object], repeats: int) -> tuple[object, tuple[float, ...]]:
@@ -252,6 +264,18 @@ def measure(repeats: int = RUNS) -> SpeedReport:
             stage("hk_total", hk_path)
         except Exception as exc:  # another engineer's module, possibly mid-change
             notes.append(f"hk_solve, hk_total: skipped, solve_hk raised {exc!r}")
+
+    # The node's own path: pipeline.reconstruct with the calibration the demo makes (near
+    # lights from the LED positions, white-target irradiance, perspective, ridge transform).
+    def pipeline(model: Model) -> object:
+        return reconstruct(
+            burst.images, lights_ps=burst.lights_ps, camera_matrix=k_mat,
+            full_scale=burst.full_scale, intensities=burst.intensities,
+            portions=burst.portions, led_positions_optical=rig.led_positions_optical,
+            options=ReconstructionOptions(model=model, enhance=True))
+
+    stage("pipeline_lambert", lambda: pipeline(Model.LAMBERT))
+    stage("pipeline_hk", lambda: pipeline(Model.HK))
 
     accuracy = _accuracy(truth, valid, depth_fast, depth_exact, depth_persp, depth_persp_exact,
                          normals=truth.normals_ps, camera_matrix=k_mat,
