@@ -28,6 +28,9 @@ setup(
             'recon_node = fingerps_recon.recon_node:main',
             'offline_recon = fingerps_recon.offline_recon:main',
             'recorder_node = fingerps_recon.recorder_node:main',
+            'bag_recover = fingerps_recon.bag_recover:main',
+            'bag_replay = fingerps_recon.bag_replay:main',
+            'offline_tune = fingerps_recon.offline_tune:main',
         ],
     },
 )

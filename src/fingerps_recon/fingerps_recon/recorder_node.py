@@ -17,8 +17,8 @@ message when full; drops are counted, logged (throttled) and reported at the end
 Shutdown: SIGINT and SIGTERM both shut the rclpy context down (rclpy Jazzy installs handlers
 for both), the spin ends, and ``destroy_node()`` drains the queue and finishes the bag, so
 the MCAP file gets its summary and the directory its metadata.yaml. A killed process
-(SIGKILL) loses the open chunk at most; ``mcap recover`` and ``ros2 bag reindex`` repair
-the rest.
+(SIGKILL) loses the open chunk at most; ``ros2 run fingerps_recon bag_recover <bag>``
+(`fingerps_recon.bag_recovery`) turns the rest into a valid bag and says what was lost.
 
 MCAP metadata records: ``fingerps.software`` (package version, ROS distro, RMW, Python,
 mcap library) and ``fingerps.recorder.parameters`` (every parameter in force). The

@@ -30,7 +30,7 @@ its first message); no bag splitting; CRCs of chunks are written (rosbag2 leaves
 Crash behaviour: messages gather in an open chunk of at most ``chunk_size`` bytes
 (`DEFAULT_CHUNK_SIZE`, 4 MiB); a full chunk is compressed and handed to the operating system
 at once (the file is unbuffered), so a killed process loses at most the open chunk (plus the
-summary and metadata.yaml, which ``mcap recover`` and ``ros2 bag reindex`` rebuild).
+summary and metadata.yaml, which ``bag_recover`` (`fingerps_recon.bag_recovery`) rebuilds).
 `SessionBagWriter.flush` closes the open chunk early; call it periodically to bound the loss
 in time as well.
 """
@@ -51,6 +51,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.message_definition import (
+    MessageDefinition,
     MessageDefinitionError,
     load_message_definition,
     type_description_hash,
@@ -488,7 +489,7 @@ class SessionBagWriter:
             except OSError as err:
                 raise SessionBagError(
                     f"cannot finish {self.mcap_path}: {err.strerror or err}; the data written "
-                    "so far can be saved with 'mcap recover'") from None
+                    "so far can be saved with 'bag_recover'") from None
             finally:
                 if self._file is not None:
                     self._file.close()
@@ -522,6 +523,7 @@ class SessionBagWriter:
         offered_qos_yaml: str,
         serialization_format: str = SERIALIZATION_FORMAT,
         type_hash: str | None = None,
+        definition: MessageDefinition | None = None,
     ) -> None:
         """Register a topic: its Schema (once per type) and Channel.
 
@@ -538,6 +540,9 @@ class SessionBagWriter:
             ``"cdr"`` for ROS 2 messages.
         type_hash : str, optional
             REP-2011 hash; by default read from the installed interface description.
+        definition : MessageDefinition, optional
+            The schema to write (e.g. one copied from another bag, as ``bag_recover`` does);
+            by default the installed full definition of ``type_name``.
 
         Raises
         ------
@@ -555,7 +560,8 @@ class SessionBagWriter:
                 f"offered_qos_yaml of {topic} must be a YAML list of QoS mappings; build it "
                 "with qos_profiles_yaml()")
         try:
-            definition = load_message_definition(type_name)
+            if definition is None:
+                definition = load_message_definition(type_name)
             if type_hash is None:
                 type_hash = type_description_hash(type_name)
         except MessageDefinitionError as err:

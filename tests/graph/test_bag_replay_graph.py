@@ -1,0 +1,161 @@
+"""bag_replay as a real process feeding a real recon_node: the bag is written here with
+SessionBagWriter from messages of the simulated rig (a LightCalibration and two Bursts one
+second apart), played at its recorded timing, and recon's normals are compared with
+`pipeline.reconstruct` run directly on the bursts read back from the bag.
+
+Equality: bitwise (``np.array_equal``) - the node runs the same function on the same arrays
+in the same order, so nothing but the transport differs.
+"""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Vector3
+from rclpy.node import Node
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+
+from fingerps_driver.simulation import Scene, SimulatedRig
+from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
+from fingerps_recon import qos, topics
+from fingerps_recon.bag_reader import SessionBagReader
+from fingerps_recon.frames import optical_to_ps, ps_to_optical
+from fingerps_recon.image_conversion import array_to_image, image_to_array
+from fingerps_recon.message_definition import MessageDefinition, load_message_definition
+from fingerps_recon.pipeline import ReconstructionOptions, reconstruct
+from fingerps_recon.session_bag import QosProfileFields, SessionBagWriter, qos_profiles_yaml
+
+NS = "/" + topics.NAMESPACE
+BURST_TOPIC = f"{NS}/{topics.BURST}"
+LIGHTS_TOPIC = f"{NS}/{topics.LIGHT_CALIBRATION}"
+FRAME_ID = "fingerps_camera_optical_frame"
+T0 = 1_700_000_000_000_000_000
+REPO = Path(__file__).resolve().parents[2]
+BAG_REPLAY = REPO / "install" / "fingerps_recon" / "lib" / "fingerps_recon" / "bag_replay"
+
+
+def _calibration(rig: SimulatedRig) -> LightCalibration:
+    directions = ps_to_optical(rig.light_directions_ps())
+    intensities = rig.light_intensities()
+    return LightCalibration(
+        header=Header(frame_id=FRAME_ID), camera_name="replay_test",
+        directions=[Vector3(x=float(x), y=float(y), z=float(z)) for x, y, z in directions],
+        relative_intensities=[float(i) for i in intensities / intensities.max()],
+        sphere_radius=rig.config.sphere_radius_m)
+
+
+def _burst(rig: SimulatedRig, burst_id: int) -> Burst:
+    images = np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(50 * burst_id + k))
+                       for k in range(rig.led_count)])
+    header = Header(stamp=Time(sec=1000 + burst_id), frame_id=FRAME_ID)
+    frames = [TaggedFrame(header=header, burst_id=burst_id, led_index=k,
+                          led_count=rig.led_count, exposure_time=0.01, led_intensity=1.0,
+                          image=array_to_image(images[k], encoding="mono8", header=header))
+              for k in range(rig.led_count)]
+    info = CameraInfo(header=header, width=rig.config.width, height=rig.config.height,
+                      k=[float(x) for x in rig.camera_matrix.reshape(-1)])
+    return Burst(header=header, burst_id=burst_id, frames=frames, camera_info=info)
+
+
+@pytest.fixture(scope="module")
+def session_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    rig = SimulatedRig()
+    path = tmp_path_factory.mktemp("replay") / "session"
+    with SessionBagWriter(path) as bag:
+        bag.add_topic(LIGHTS_TOPIC, "fingerps_msgs/msg/LightCalibration",
+                      offered_qos_yaml=qos_profiles_yaml(QosProfileFields.from_profile(
+                          qos.CALIBRATION_QOS)))
+        bag.add_topic(BURST_TOPIC, "fingerps_msgs/msg/Burst",
+                      offered_qos_yaml=qos_profiles_yaml(QosProfileFields.from_profile(
+                          qos.BURST_QOS)))
+        bag.write(LIGHTS_TOPIC, serialize_message(_calibration(rig)), log_time_ns=T0,
+                  publish_time_ns=T0)
+        for i in (1, 2):
+            t = T0 + i * 1_000_000_000
+            bag.write(BURST_TOPIC, serialize_message(_burst(rig, i)), log_time_ns=t,
+                      publish_time_ns=t)
+    return path
+
+
+def _direct_normals(lights: LightCalibration, burst: Burst) -> np.ndarray:
+    """recon_node's computation, without ROS (its default parameters)."""
+    frames = sorted(burst.frames, key=lambda f: f.led_index)
+    images = np.stack([image_to_array(f.image) for f in frames])
+    directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
+    intensities = np.asarray(lights.relative_intensities, dtype=np.float64)
+    result = reconstruct(
+        images, lights_ps=optical_to_ps(directions),
+        camera_matrix=np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3),
+        full_scale=255.0, intensities=intensities, portions=None, dark=None,
+        led_positions_optical=None, options=ReconstructionOptions(enhance=True))
+    return ps_to_optical(result.normals_ps).astype(np.float32)
+
+
+def test_replayed_bursts_reconstruct_as_live(session_bag: Path, ros_node: Node, start_node,
+                                             spin_until) -> None:
+    received: dict[int, Image] = {}
+    ros_node.create_subscription(Image, f"{NS}/{topics.NORMALS}",
+                                 lambda m: received.setdefault(m.header.stamp.sec, m),
+                                 qos.OUTPUT_QOS)
+    recon = start_node("fingerps_recon", "recon_node")
+    recon.wait_in_graph(ros_node, "recon", NS)
+    replay = start_node("fingerps_recon", "bag_replay", "--ros-args",
+                        "-p", f"bag:={session_bag}", "-p", "wait_for_subscribers:=1")
+    spin_until(lambda: len(received) == 2, "recon's normals of both replayed bursts",
+               timeout=30.0)
+    assert replay.wait() == 0, replay.output
+    assert "replay done: 3 messages published" in replay.output
+
+    reader = SessionBagReader(session_bag)
+    lights = reader.latest(LIGHTS_TOPIC)
+    for message in reader.messages([BURST_TOPIC]):
+        burst = message.deserialize()
+        live = image_to_array(received[burst.header.stamp.sec])
+        assert np.array_equal(live, _direct_normals(lights, burst))
+        assert np.count_nonzero(live.any(axis=2)) > 1000
+
+
+def test_start_offset_and_topic_filter(session_bag: Path, ros_node: Node, start_node,
+                                       spin_until) -> None:
+    bursts: list[int] = []
+    ros_node.create_subscription(Burst, BURST_TOPIC, lambda m: bursts.append(m.burst_id),
+                                 qos.BURST_QOS)
+    lights: list[LightCalibration] = []
+    ros_node.create_subscription(LightCalibration, LIGHTS_TOPIC, lights.append,
+                                 qos.CALIBRATION_QOS)
+    replay = start_node("fingerps_recon", "bag_replay", "--ros-args",
+                        "-p", f"bag:={session_bag}", "-p", "start:=1.5", "-p", "rate:=0.0",
+                        "-p", "wait_for_subscribers:=1")
+    spin_until(lambda: bursts and lights, "the burst after start and the calibration")
+    assert replay.wait() == 0, replay.output
+    spin_until(lambda: True, "a last spin")
+    assert bursts == [2] and len(lights) == 1  # calibration in force at start is published
+
+    only = start_node("fingerps_recon", "bag_replay", "--ros-args",
+                      "-p", f"bag:={session_bag}", "-p", "rate:=0.0",
+                      "-p", f"topics:=[{LIGHTS_TOPIC}]")
+    assert only.wait() == 0
+    assert "replay done: 1 messages published" in only.output
+
+
+def test_a_bag_of_another_message_version_is_refused(tmp_path: Path) -> None:
+    real = load_message_definition("fingerps_msgs/msg/Burst")
+    old = MessageDefinition(real.type_name, real.encoding,
+                            real.text.replace("uint32 burst_id", "uint16 burst_id", 1))
+    assert old.text != real.text
+    with SessionBagWriter(tmp_path / "old") as bag:
+        bag.add_topic(BURST_TOPIC, "fingerps_msgs/msg/Burst", offered_qos_yaml="[]",
+                      definition=old)
+        bag.write(BURST_TOPIC, b"\x00\x01\x00\x00", log_time_ns=T0, publish_time_ns=T0)
+    result = subprocess.run([str(BAG_REPLAY), "--ros-args", "-p", f"bag:={tmp_path / 'old'}"],
+                            capture_output=True, text=True, timeout=30)
+    assert result.returncode == 1, result.stdout + result.stderr
+    output = result.stdout + result.stderr
+    assert "another version of fingerps_msgs/msg/Burst" in output
+    assert "Traceback" not in output
