@@ -12,6 +12,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -27,6 +28,7 @@ setup(
             'driver_node = fingerps_driver.driver_node:main',
             'board_emulator = fingerps_driver.board_emulator:main',
             'demo = fingerps_driver.demo:main',
+            'bringup = fingerps_driver.bringup:main',
         ],
     },
 )

@@ -26,6 +26,7 @@ setup(
     entry_points={
         "console_scripts": [
             'recon_node = fingerps_recon.recon_node:main',
+            'scan_node = fingerps_recon.scan_node:main',
             'offline_recon = fingerps_recon.offline_recon:main',
             'recorder_node = fingerps_recon.recorder_node:main',
             'bag_recover = fingerps_recon.bag_recover:main',

@@ -104,6 +104,20 @@ def test_order_levels_and_exposures_are_applied_and_tagged(rig):
     assert _masks_since(rig.emulator, start) == [16, 1, 4, 0]
 
 
+def test_the_first_led_is_repeated_after_the_last_when_asked(rig):
+    start = time.monotonic()
+    result = _burst(rig, led_order=(4, 0, 2), exposures_s=(0.01, 0.02, 0.03),
+                    repeat_first=True, with_dark=True)
+    assert result.ok, result.reason
+    assert [f.led_index for f in result.frames] == [4, 0, 2]
+    repeat = result.repeat
+    assert repeat is not None and repeat.led_index == 4 and repeat.exposure_s == 0.01
+    assert np.all(repeat.image == 16)  # LED 4 was lit again when the camera grabbed
+    assert result.frames[-1].stamp_ns <= repeat.stamp_ns <= result.dark.stamp_ns
+    assert _masks_since(rig.emulator, start) == [16, 1, 4, 16, 0]
+    assert _burst(rig).repeat is None
+
+
 def test_fault_mid_burst_fails_it_and_the_next_burst_is_fine(rig):
     grabs = []
 

@@ -84,10 +84,12 @@ class BurstResult:
         Wall time from the first command to the last, failure or not.
     failed_step : str
         The step that failed (``"level"``, ``"exposure"``, ``"switch"``, ``"grab"``,
-        ``"off"``, ``"dark"``); ``""`` when ok.
+        ``"repeat"``, ``"off"``, ``"dark"``); ``""`` when ok.
     error_type : str
         Class name of the error that failed it (``"BoardDisconnectedError"``,
         ``"CameraError"``...), ``""`` when ok or when the step failed a check.
+    repeat : CapturedFrame or None
+        The first LED of ``led_order`` lit again after the last one, if asked for and ok.
     """
 
     burst_id: int
@@ -98,11 +100,12 @@ class BurstResult:
     duration_s: float
     failed_step: str = ""
     error_type: str = ""
+    repeat: CapturedFrame | None = None
 
     @property
     def camera_failed(self) -> bool:
         """True if the burst failed at the camera (a grab or an exposure change)."""
-        return self.failed_step in ("grab", "dark", "exposure")
+        return self.failed_step in ("grab", "dark", "exposure", "repeat")
 
 
 class _StepFailedError(Exception):
@@ -133,6 +136,7 @@ def capture_burst(
     exposures_s: float | Sequence[float],
     levels: float | Sequence[float],
     with_dark: bool = False,
+    repeat_first: bool = False,
     expected_shape: tuple[int, int] | None = None,
     grab_timeout_s: float = 0.1,
     clock: Callable[[], int] = time.time_ns,
@@ -159,6 +163,9 @@ def capture_burst(
         (``round(255 * level)``) before the first switch.
     with_dark : bool
         Also grab a dark frame after all LEDs are off, with the longest exposure.
+    repeat_first : bool
+        After the last LED, light the first LED of ``led_order`` again and grab it
+        (``BurstResult.repeat``): a still finger gives the same frame twice.
     expected_shape : (H, W) or None
         Frame shape every grab must have; default ``(camera.height, camera.width)``.
     grab_timeout_s : float
@@ -225,6 +232,24 @@ def capture_burst(
             stamp = clock()
             image = _grab(camera, "grab", led, exposure + grab_timeout_s, shape, dtype)
             frames.append(CapturedFrame(led, image, stamp, exposure, code / MAX_LEVEL))
+        repeat = None
+        if repeat_first:
+            led, exposure, code = order[0], exposures[0], codes[0]
+            if exposure_control is not None:
+                try:
+                    exposure_control.set_exposure(exposure)
+                except FingerpsDriverError as exc:
+                    raise _StepFailedError("exposure", led, exc) from exc
+            try:
+                acked = board.set_leds(1 << led)
+            except FingerpsDriverError as exc:
+                raise _StepFailedError("switch", led, exc) from exc
+            if acked != 1 << led:
+                raise _StepFailedError(
+                    "switch", led, f"board acknowledged mask {acked:#x}, not {1 << led:#x}")
+            stamp = clock()
+            image = _grab(camera, "repeat", led, exposure + grab_timeout_s, shape, dtype)
+            repeat = CapturedFrame(led, image, stamp, exposure, code / MAX_LEVEL)
         try:
             board.all_off()
         except FingerpsDriverError as exc:
@@ -248,7 +273,8 @@ def capture_burst(
         reason = f"burst {burst_id} failed at {exc}"
         return BurstResult(burst_id, (), None, False, reason, time.monotonic() - start,
                            failed_step=exc.step, error_type=exc.error_type)
-    return BurstResult(burst_id, tuple(frames), dark, True, "", time.monotonic() - start)
+    return BurstResult(burst_id, tuple(frames), dark, True, "", time.monotonic() - start,
+                       repeat=repeat)
 
 
 def _grab(

@@ -138,6 +138,10 @@ class DriverNode(Node):
         self._board: LedBoard | None = None
         self._camera: Camera | None = None
         self._rig: SimulatedRig | None = None
+        self._sim_frame = 0  # frame index within the burst being captured (sim motion)
+        self._sim_motion = (0.0, 0.0)  # the finger's motion over the burst being captured
+        self._sim_steps = 1  # LED frames of that burst
+        self._sim_moving_bursts = 0  # bursts that still move (sim.finger_motion_bursts)
         self._camera_info = CameraInfo()
         self._board_state = BoardState.DISCONNECTED
         self._firmware = ""
@@ -192,6 +196,9 @@ class DriverNode(Node):
         checks.add("sim.reflectance", one_of(*(r.value for r in Reflectance)))
         checks.add("sim.bit_depth", lambda v: None if v in (8, 12) else "must be 8 or 12")
         checks.add("sim.sphere_center", _sphere_center_problem)
+        checks.add("sim.finger_motion_px", lambda v: None if len(v) == 2 and all(
+            np.isfinite(v)) and max(abs(x) for x in v) <= 100 else
+            "must be two finite numbers [du, dv] in pixels, each within +-100")
         checks.add("led_order", lambda v: check_led_order(list(v), self._led_count))
         checks.add("exposure_times",
                    lambda v: check_exposures(list(v) if v is not None else None,
@@ -300,6 +307,12 @@ class DriverNode(Node):
             "Where the simulated calibration sphere is, [x, y, z] metres in the optical "
             "frame; move it between calibrate_lights calls (add_placement) to estimate the "
             "LED positions"))
+        p("sim.finger_motion_px", [0.0, 0.0], descriptor(
+            "Simulated finger motion during a burst, [du, dv] pixels: frame i of n LEDs is "
+            "shifted by i/n of it, the repeated first LED (repeat_first_led) by all of it"))
+        p("sim.finger_motion_bursts", 0, descriptor(
+            "Bursts the finger moves in once sim.finger_motion_px is set (counted from then); "
+            "0 = every burst", min_value=0, max_value=1_000_000, integer=True))
         p("sim.board_control", "", descriptor(
             "Control socket of a board_emulator process (its --control): with a port other "
             "than 'sim', the sim and folder cameras see the LEDs that emulator has lit",
@@ -318,6 +331,8 @@ class DriverNode(Node):
         for param in parameters:
             if param.name == "rate":
                 self._apply_rate(param.value)
+            elif param.name in ("sim.finger_motion_px", "sim.finger_motion_bursts"):
+                self._sim_moving_bursts = int(self._param("sim.finger_motion_bursts"))
             elif param.name == "sim.sphere_center" and self._rig is not None:
                 with self._lock:  # not in the middle of a burst
                     self._rig = SimulatedRig(replace(
@@ -451,7 +466,11 @@ class DriverNode(Node):
 
         def render(lit: tuple[int, ...] | list[int]) -> np.ndarray:
             scene = Scene(self.get_parameter("sim.scene").value)
-            return self._rig.render(scene, list(lit), rng=rng)
+            step = min(self._sim_frame, self._sim_steps) / self._sim_steps
+            self._sim_frame += 1
+            du, dv = self._sim_motion
+            return self._rig.render(scene, list(lit), rng=rng,
+                                    finger_shift_px=(du * step, dv * step))
 
         return SimulatedCamera(render, self._lit_source(), width=config.width,
                                height=config.height, encoding=encoding)
@@ -577,14 +596,15 @@ class DriverNode(Node):
     def _on_capture(self, request: CaptureBurst.Request,
                     response: CaptureBurst.Response) -> CaptureBurst.Response:
         result, burst = self.capture(with_dark=request.with_dark_frame,
-                                     publish=not request.response_only)
+                                     publish=not request.response_only,
+                                     repeat_first=request.repeat_first_led)
         response.success = result.ok
         response.message = "ok" if result.ok else result.reason
         if burst is not None:
             response.burst = burst
         return response
 
-    def capture(self, *, with_dark: bool, publish: bool = True
+    def capture(self, *, with_dark: bool, publish: bool = True, repeat_first: bool = False
                 ) -> tuple[BurstResult, Burst | None]:
         """Capture one burst, publish it if asked; return the result and the message if whole.
 
@@ -598,10 +618,11 @@ class DriverNode(Node):
             else:
                 self._burst_id += 1
                 plan = self._plan()
+                self._start_sim_motion(len(plan.led_order))
                 result = capture_burst(
                     self._board, self._camera, burst_id=self._burst_id,
                     led_order=plan.led_order, exposures_s=plan.exposures_s,
-                    levels=plan.levels, with_dark=with_dark,
+                    levels=plan.levels, with_dark=with_dark, repeat_first=repeat_first,
                     expected_shape=(self._camera.height, self._camera.width))
         if not result.ok:
             self._burst_failed(result)
@@ -612,6 +633,18 @@ class DriverNode(Node):
         c.last_burst_ms = result.duration_s * 1e3
         self._burst_ms.append(c.last_burst_ms)
         return result, self._publish(result, publish=publish)
+
+    def _start_sim_motion(self, steps: int) -> None:
+        """Set the simulated finger's motion for the burst about to be captured."""
+        if self._rig is None:
+            return
+        motion = tuple(float(v) for v in self._param("sim.finger_motion_px"))
+        moving = any(motion) and (int(self._param("sim.finger_motion_bursts")) == 0
+                                  or self._sim_moving_bursts > 0)
+        if moving and self._sim_moving_bursts > 0:
+            self._sim_moving_bursts -= 1
+        self._sim_motion = motion if moving else (0.0, 0.0)
+        self._sim_frame, self._sim_steps = 0, max(steps, 1)
 
     def _not_connected_reason(self) -> str:
         assert self._board is not None
@@ -670,6 +703,9 @@ class DriverNode(Node):
         if result.dark is not None:
             burst.has_dark_frame = True
             burst.dark_frame = self._tagged(result.dark, result.burst_id, frame_id)
+        if result.repeat is not None:
+            burst.has_repeat_frame = True
+            burst.repeat_frame = self._tagged(result.repeat, result.burst_id, frame_id)
         if publish:
             self._pub_info.publish(info)
             self._pub_burst.publish(burst)

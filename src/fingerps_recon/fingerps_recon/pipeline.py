@@ -90,6 +90,7 @@ class Reconstruction:
     points_optical: np.ndarray      # (N, 3) float32, metres
     point_albedo: np.ndarray        # (N,) float32
     hk_scale: float | None = None   # the HK model's fitted global scale A
+    residual: float | None = None   # Lambertian fit: rms(I - rho n.l) / mean(I), valid pixels
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -176,6 +177,9 @@ def reconstruct(
                            shadow_level=shadow_level, saturation_level=limit)
     timings["lambert"] = (time.perf_counter() - t1) * 1e3
     valid = lam.valid & mask
+    usable = (stack > shadow_level) & (stack < limit)
+    residual = _lambert_residual(stack, lights, light_power, lam.normals, lam.albedo,
+                                 valid=valid, usable=usable)
     normals, albedo, hk_scale = lam.normals, lam.albedo, None
     if options.model is Model.HK:
         from fingerps_recon.hk_solver import solve_hk
@@ -183,7 +187,6 @@ def reconstruct(
         t1 = time.perf_counter()
         views = (view_directions_ps(k_matrix, shape)
                  if options.projection is Projection.PERSPECTIVE else (0.0, 0.0, 1.0))
-        usable = (stack > shadow_level) & (stack < limit)
         hk = solve_hk(stack, lights, mask=valid, init_normals=normals, init_albedo=albedo,
                       views=views, intensities=light_power, usable=usable,
                       iterations=options.hk_iterations)
@@ -205,7 +208,32 @@ def reconstruct(
     return Reconstruction(
         normals_ps=normals, enhanced_ps=enhanced, albedo=albedo, mask=valid, depth_m=depth,
         height_m=height, points_optical=points, point_albedo=albedo.reshape(-1)[index],
-        hk_scale=hk_scale, timings_ms=timings)
+        hk_scale=hk_scale, residual=residual, timings_ms=timings)
+
+
+def _lambert_residual(stack: np.ndarray, lights: np.ndarray, power: np.ndarray | None,
+                      normals: np.ndarray, albedo: np.ndarray, *, valid: np.ndarray,
+                      usable: np.ndarray) -> float | None:
+    """rms(I - power * rho * max(0, n . l)) / mean(I) over valid pixels' usable values
+    (Eq. 3's misfit, relative); None without valid pixels. ``lights`` (K, 3) or (K, H, W, 3);
+    ``power`` None, (K,) or (K, H, W)."""
+    if not valid.any():
+        return None
+    rows, cols = np.nonzero(valid)
+    n = normals[rows, cols].astype(np.float64)                      # (P, 3)
+    lgt = lights[:, rows, cols] if lights.ndim == 4 else lights[:, None, :]
+    predicted = albedo[rows, cols][None, :] * np.maximum(np.sum(n[None] * lgt, axis=2), 0.0)
+    if power is not None:
+        p = np.asarray(power, dtype=np.float64)
+        predicted = predicted * (p[:, rows, cols] if p.ndim == 3 else p[:, None])
+    observed = stack[:, rows, cols]
+    use = usable[:, rows, cols]
+    if not use.any():
+        return None
+    mean = float(observed[use].mean())
+    if mean <= 0:
+        return None
+    return float(np.sqrt(np.mean((observed[use] - predicted[use]) ** 2)) / mean)
 
 
 def _irradiance(portions: np.ndarray, intensities: np.ndarray | None,

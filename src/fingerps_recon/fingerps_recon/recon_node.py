@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -23,7 +24,13 @@ from fingerps_recon.image_conversion import array_to_image, image_to_array
 from fingerps_recon.node_runner import run_node
 from fingerps_recon.normal_map import normal_map_rgb
 from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
-from fingerps_recon.pipeline import Model, Projection, ReconstructionOptions, reconstruct
+from fingerps_recon.pipeline import (
+    Model,
+    Projection,
+    Reconstruction,
+    ReconstructionOptions,
+    reconstruct,
+)
 from fingerps_recon.point_cloud_conversion import points_to_cloud
 
 _FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
@@ -160,29 +167,15 @@ class ReconNode(Node):
             raise FingerpsReconError(
                 "no light calibration yet: call the calibrate_lights service (or start "
                 "calib_node with a saved calibration) before sending bursts")
-        images, encoding = _burst_images(burst, len(lights.directions))
-        full_scale = float(self.get_parameter("mono16_full_scale").value) \
-            if encoding == "mono16" else _FULL_SCALE.get(encoding, 255.0)
-        directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
-        intensities = np.asarray(lights.relative_intensities, dtype=np.float64)
         maps = self._flat_maps
-        if maps is not None and maps.shape != images.shape:
+        made = reconstruct_burst(
+            burst, lights, maps, options=self._options(),
+            mono16_full_scale=float(self.get_parameter("mono16_full_scale").value))
+        if maps is not None and not made.flat_field_used:
             self.get_logger().warning(
-                f"flat field {maps.shape} does not fit the images {images.shape}; not used",
-                throttle_duration_sec=10.0)
-            maps = None
-        dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
-        k_matrix = np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3)
-        if k_matrix[0, 0] <= 0:
-            raise FingerpsReconError("the burst's camera_info has no intrinsics (fx <= 0)")
-        leds = np.array([[p.x, p.y, p.z] for p in lights.led_positions])
-        result = reconstruct(
-            images, lights_ps=optical_to_ps(directions), camera_matrix=k_matrix,
-            full_scale=full_scale,
-            intensities=intensities if intensities.size == len(images) else None,
-            portions=maps, dark=dark,
-            led_positions_optical=leds if len(leds) == len(images) else None,
-            options=self._options())
+                f"flat field {maps.shape} does not fit the images {made.images.shape}; not "
+                "used", throttle_duration_sec=10.0)
+        result = made.result
         header = burst.header
         normals_optical = ps_to_optical(result.normals_ps).astype(np.float32)
         self._pub_normals.publish(array_to_image(normals_optical, encoding="32FC3",
@@ -221,6 +214,42 @@ class ReconNode(Node):
         if self._worker.is_alive():
             self._worker.join(timeout=10.0)
         super().destroy_node()
+
+
+@dataclass(frozen=True)
+class BurstReconstruction:
+    """What :func:`reconstruct_burst` used and made."""
+
+    result: Reconstruction
+    images: np.ndarray            # (K, H, W) in LED order, as captured
+    dark: np.ndarray | None       # (H, W) the burst's dark frame
+    full_scale: float
+    flat_field_used: bool
+
+
+def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndarray | None,
+                      *, options: ReconstructionOptions,
+                      mono16_full_scale: float = 4095.0) -> BurstReconstruction:
+    """Reconstruct a Burst message with a light calibration and flat-field maps (K, H, W)
+    (None, or maps of another shape: not used); raises ``FingerpsReconError``."""
+    images, encoding = _burst_images(burst, len(lights.directions))
+    full_scale = mono16_full_scale if encoding == "mono16" else _FULL_SCALE.get(encoding, 255.0)
+    directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
+    intensities = np.asarray(lights.relative_intensities, dtype=np.float64)
+    maps = flat_maps if flat_maps is not None and flat_maps.shape == images.shape else None
+    dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
+    k_matrix = np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3)
+    if k_matrix[0, 0] <= 0:
+        raise FingerpsReconError("the burst's camera_info has no intrinsics (fx <= 0)")
+    leds = np.array([[p.x, p.y, p.z] for p in lights.led_positions])
+    result = reconstruct(
+        images, lights_ps=optical_to_ps(directions), camera_matrix=k_matrix,
+        full_scale=full_scale,
+        intensities=intensities if intensities.size == len(images) else None,
+        portions=maps, dark=dark,
+        led_positions_optical=leds if len(leds) == len(images) else None,
+        options=options)
+    return BurstReconstruction(result, images, dark, full_scale, maps is not None)
 
 
 class IncompleteBurstError(FingerpsReconError):

@@ -1,0 +1,118 @@
+"""bringup as a real process: the whole graph from one parameter file, Ctrl-C stops it
+cleanly (recorder's bag finalised, exit 0); a bad parameter file stops it naming the key;
+each package's config/<node>.yaml loads in its node and lists every parameter it has."""
+
+from __future__ import annotations
+
+import re
+import signal
+from pathlib import Path
+
+import pytest
+import yaml
+from ament_index_python.packages import get_package_share_directory
+from rcl_interfaces.srv import ListParameters
+from rclpy.node import Node
+
+from fingerps_recon import topics
+
+NS = "/" + topics.NAMESPACE
+NODES = ("driver", "calib", "recon", "recorder", "scan")
+CONFIGS = {"driver": ("fingerps_driver", "driver.yaml"),
+           "calib": ("fingerps_calib", "calib.yaml"),
+           "recon": ("fingerps_recon", "recon.yaml"),
+           "recorder": ("fingerps_recon", "recorder.yaml"),
+           "scan": ("fingerps_recon", "scan.yaml")}
+ROS_DEFAULTS = {"use_sim_time", "start_type_description_service"}
+
+
+@pytest.fixture(autouse=True)
+def _own_ros_home(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """calib_node's default calibration_dir lies under ROS_HOME: keep it in the test."""
+    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
+
+
+def _config(package: str, name: str) -> Path:
+    return Path(get_package_share_directory(package)) / "config" / name
+
+
+def _write(path: Path, data: dict) -> Path:
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _start_and_stop(bringup, ros_node: Node) -> str:
+    for name in NODES:
+        bringup.wait_in_graph(ros_node, name, NS, timeout=60.0)
+    bringup.send_signal(signal.SIGINT)
+    assert bringup.wait(timeout=40.0) == 0, bringup.output
+    return bringup.output
+
+
+def test_bringup_starts_the_graph_and_ctrl_c_stops_it_cleanly(
+        ros_node: Node, start_node, tmp_path: Path) -> None:
+    params = yaml.safe_load(_config("fingerps_driver", "fingerps_sim.yaml").read_text())
+    params["/fingerps/recorder"]["ros__parameters"]["bags_dir"] = str(tmp_path / "bags")
+    bringup = start_node("fingerps_driver", "bringup", "--params",
+                         str(_write(tmp_path / "sim.yaml", params)))
+    output = _start_and_stop(bringup, ros_node)
+    assert re.search(r"stopped: driver_node 0, calib_node 0, recon_node 0, recorder_node 0, "
+                     r"scan_node 0", output), output
+    (session,) = list((tmp_path / "bags").iterdir())
+    assert (session / "metadata.yaml").is_file()  # the recorder finalised its bag
+
+
+def test_every_package_config_loads_and_lists_every_parameter(
+        ros_node: Node, start_node, spin_until, tmp_path: Path) -> None:
+    merged = {}
+    for package, name in CONFIGS.values():
+        merged.update(yaml.safe_load(_config(package, name).read_text()))
+    documented = {node: _documented(node) for node in NODES}
+    merged["/fingerps/recorder"]["ros__parameters"]["bags_dir"] = str(tmp_path / "bags")
+    bringup = start_node("fingerps_driver", "bringup", "--params",
+                         str(_write(tmp_path / "all.yaml", merged)))
+    for name in NODES:
+        bringup.wait_in_graph(ros_node, name, NS, timeout=60.0)
+    for name in NODES:
+        client = ros_node.create_client(ListParameters, f"{NS}/{name}/list_parameters")
+        assert client.wait_for_service(timeout_sec=20.0)
+        future = client.call_async(ListParameters.Request())
+        spin_until(future.done, f"{name}'s parameters")
+        declared = set(future.result().result.names) - ROS_DEFAULTS
+        assert declared == documented[name], (
+            f"{name}: undocumented {sorted(declared - documented[name])}, "
+            f"documented but absent {sorted(documented[name] - declared)}")
+    bringup.send_signal(signal.SIGINT)
+    assert bringup.wait(timeout=40.0) == 0, bringup.output
+
+
+def _documented(node: str) -> set[str]:
+    """Parameter names of a package's config/<node>.yaml, commented-out ones included."""
+    text = _config(*CONFIGS[node]).read_text()
+    keys = set(yaml.safe_load(text)[f"{NS}/{node}"]["ros__parameters"])
+    return keys | set(re.findall(r"^ {4,}# ([a-z_.0-9]+): ", text, flags=re.MULTILINE))
+
+
+@pytest.mark.parametrize("name", ["fingerps_sim.yaml", "fingerps_hardware.yaml"])
+def test_the_graph_files_set_only_documented_parameters(name: str) -> None:
+    data = yaml.safe_load(_config("fingerps_driver", name).read_text())
+    assert set(data) == {f"{NS}/{node}" for node in NODES}
+    for node in NODES:
+        keys = set(data[f"{NS}/{node}"]["ros__parameters"])
+        assert keys <= _documented(node), sorted(keys - _documented(node))
+
+
+@pytest.mark.parametrize(("section", "params", "named"), [
+    ("/fingerps/recon", {"modle": "hk"}, "'modle'"),
+    ("/fingerps/driver", {"led_count": "seven"}, "led_count"),
+    ("/fingerps/scann", {"model": "hk"}, "unknown node '/fingerps/scann'"),
+])
+def test_a_bad_parameter_file_stops_bringup_naming_the_key(
+        start_node, tmp_path: Path, section: str, params: dict, named: str) -> None:
+    data = yaml.safe_load(_config("fingerps_driver", "fingerps_sim.yaml").read_text())
+    data["/fingerps/recorder"]["ros__parameters"]["bags_dir"] = str(tmp_path / "bags")
+    data.setdefault(section, {"ros__parameters": {}})["ros__parameters"].update(params)
+    bringup = start_node("fingerps_driver", "bringup", "--params",
+                         str(_write(tmp_path / "bad.yaml", data)))
+    assert bringup.wait(timeout=60.0) == 2, bringup.output
+    assert named in bringup.output, bringup.output
