@@ -39,7 +39,7 @@ N_CONSTS = 6
 N_SUMS = 15
 
 
-def _jit(fn):  # noqa: ANN001, ANN202 (decorator)
+def _jit(fn):
     """``numba.njit(parallel=True, fastmath=False, cache=True)``, without the on-disk cache
     where numba finds no writable cache directory."""
     options = {"parallel": True, "fastmath": False, "nogil": True}
@@ -51,7 +51,7 @@ def _jit(fn):  # noqa: ANN001, ANN202 (decorator)
         return numba.njit(cache=False, **options)(fn)
 
 
-def _inline(fn):  # noqa: ANN001, ANN202 (decorator)
+def _inline(fn):
     """A serial helper called from the kernels (compiled into them)."""
     return numba.njit(cache=True, fastmath=False, nogil=True, inline="always")(fn)
 
@@ -65,7 +65,7 @@ def _column(j: int, array: np.ndarray) -> int:
 @_inline
 def _pixel_sums(
     j, nx, ny, nz, rho, a, tau, values, usable, lights, views, intensity, phase, consts,
-):  # noqa: ANN001, ANN202
+):
     """The 15 Gauss–Newton sums of pixel j at normal n, albedo rho and scale A (as the numpy
     backend's ``_Evaluator.block_sums``): J^T J (upper triangle, unknowns (a, b, rho)),
     J^T r, J^T P, P.P, P.r, r.r, with r = I - f over the usable measurements, P = df/dA."""
@@ -128,13 +128,13 @@ def _pixel_sums(
 
 
 @_inline
-def _store(sums, j, s):  # noqa: ANN001, ANN202
+def _store(sums, j, s):
     for i in range(N_SUMS):
         sums[j, i] = s[i]
 
 
 @_inline
-def _step(sums, j, lam, delta0, w, consts):  # noqa: ANN001, ANN202
+def _step(sums, j, lam, delta0, w, consts):
     """Damped Gauss–Newton step of pixel j (as the numpy backend's ``_block_step``), from
     its stored sums: delta0 = Hd^-1 J^T r and w = Hd^-1 J^T P into ``delta0[j]``, ``w[j]``,
     with Hd = H + lambda diag(H); a (nearly) singular Hd gives a zero step and raises the
@@ -179,7 +179,7 @@ def _step(sums, j, lam, delta0, w, consts):  # noqa: ANN001, ANN202
 
 
 @_inline
-def _shifted_cost(sums, j, delta):  # noqa: ANN001, ANN202
+def _shifted_cost(sums, j, delta):
     """Pixel j's cost after A -> A + delta (the cost is quadratic in A)."""
     cost = float(sums[j, 14])
     if delta != 0.0:
@@ -188,7 +188,7 @@ def _shifted_cost(sums, j, delta):  # noqa: ANN001, ANN202
 
 
 @_jit
-def linear_sums(n, values, usable, lights, views, intensity, phase, tau, consts, rows, parts):  # noqa: ANN001, ANN201, E501
+def linear_sums(n, values, usable, lights, views, intensity, phase, tau, consts, rows, parts):
     """For A's and rho's joint linear fit at the normals ``n`` (N, 3): per pixel
     (P.C, C.C, C.I) into ``rows`` (N, 3) float64, and per chunk the parts of the fit's
     numerator sum (P.I - P.C C.I / C.C) and denominator sum (P.P - (P.C)^2 / C.C) into
@@ -233,7 +233,7 @@ def linear_sums(n, values, usable, lights, views, intensity, phase, tau, consts,
 
 
 @_jit
-def start(n, rho, lam, rows, scale, tau, values, usable, lights, views, intensity, phase, consts,  # noqa: ANN001, ANN201, E501
+def start(n, rho, lam, rows, scale, tau, values, usable, lights, views, intensity, phase, consts,
           sums, delta0, w, parts):
     """rho in closed form for A = ``scale`` at the initial normals (from ``rows`` of
     :func:`linear_sums`), the pixels' sums there and their first step. Per chunk into
@@ -258,7 +258,7 @@ def start(n, rho, lam, rows, scale, tau, values, usable, lights, views, intensit
 
 
 @_jit
-def candidate(n, rho, delta0, w, scale, trial, tau, values, usable, lights, views, intensity,  # noqa: ANN001, ANN201, E501
+def candidate(n, rho, delta0, w, scale, trial, tau, values, usable, lights, views, intensity,
               phase, consts, sums, n_new, rho_new, sums_new, parts):
     """Each pixel's candidate for A -> ``trial`` (step delta0 - (trial - A) w along the
     tangent directions and in rho), its sums at ``trial``, and the choice at ``trial``: per
@@ -304,7 +304,7 @@ def candidate(n, rho, delta0, w, scale, trial, tau, values, usable, lights, view
 
 
 @_jit
-def commit(n, rho, lam, scale, trial, at, consts, sums, n_new, rho_new, sums_new, delta0, w,  # noqa: ANN001, ANN201, E501
+def commit(n, rho, lam, scale, trial, at, consts, sums, n_new, rho_new, sums_new, delta0, w,
            parts):
     """Each pixel keeps the better of its state and its candidate at A = ``at`` (their sums
     brought to that A), adapts its damping and takes its next step. Per chunk into
