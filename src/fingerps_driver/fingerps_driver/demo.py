@@ -258,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
             if not response.success:
                 raise DemoError(f"burst capture failed: {response.message}")
             capture_ms.append((time.monotonic() - t0) * 1e3)
-        wait_for_outputs(node.received, args.bursts, quiet_s=10.0)
+        wait_for_outputs(node.received, args.bursts, quiet_s=40.0)
         with node.received.lock:
             t_last = max(node.received.arrival.values(), default=time.monotonic())
     finally:

@@ -212,7 +212,7 @@ class ReconNode(Node):
             self._stop = True
             self._cv.notify_all()
         if self._worker.is_alive():
-            self._worker.join(timeout=10.0)
+            self._worker.join(timeout=60.0)
         super().destroy_node()
 
 
