@@ -57,9 +57,8 @@ import importlib
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from types import ModuleType
@@ -264,24 +263,25 @@ def solve_hk(
         isinstance(tol, (int, float, np.integer, np.floating)) and math.isfinite(tol) and tol >= 0
     ):
         raise FingerpsReconError(f"tol must be a finite number >= 0, got {tol}")
-    inputs = _check(
+    columns, pix, (h, w) = _prepare(
         images, lights, mask=mask, init_normals=init_normals, init_albedo=init_albedo,
         views=views, intensities=intensities, usable=usable, params=params,
     )
-    kernel = _kernel_module(backend)
-    fit, iterations, tol = scale is None, int(iterations), float(tol)
-    if kernel is not None:
-        with _numba_threads():
-            return _solve_numba(inputs, kernel, scale=scale, fit=fit, iterations=iterations,
-                                tol=tol)
-    columns, pix, (h, w) = _prepare(inputs)
     if pix.size == 0:
-        return _nothing_valid((h, w), scale)
-    with _NumpyPasses(columns) as passes:
-        a_scale, history, done = _minimise(
-            passes, scale=scale, fit=fit, iterations=iterations, tol=tol,
+        return HKResult(
+            normals=np.zeros((h, w, 3), np.float32), albedo=np.zeros((h, w), np.float32),
+            scale=float("nan") if scale is None else float(scale),
+            valid=np.zeros((h, w), bool), residual_rms=np.zeros((h, w), np.float32),
+            iterations=0, cost_history=(0.0,),
         )
-        n, rho, sums = passes.result(pix.size)
+    kernel = _kernel_module(backend)
+    passes = _NumbaPasses(columns, kernel) if kernel is not None else _NumpyPasses(columns)
+    with passes:
+        a_scale, history, done = _minimise(
+            passes, scale=scale, fit=scale is None, iterations=int(iterations), tol=float(tol),
+        )
+        count = pix.size
+        n, rho, sums = passes.result(count)
     cost = sums[_COST]
     ok = np.all(np.isfinite(n), axis=0) & np.isfinite(rho) & _determined(sums)
     normals = np.zeros((h * w, 3), np.float32)
@@ -297,140 +297,6 @@ def solve_hk(
         valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w), iterations=done,
         cost_history=tuple(history),
     )
-
-
-def _nothing_valid(shape: tuple[int, int], scale: float | None) -> HKResult:
-    h, w = shape
-    return HKResult(
-        normals=np.zeros((h, w, 3), np.float32), albedo=np.zeros((h, w), np.float32),
-        scale=float("nan") if scale is None else float(scale),
-        valid=np.zeros((h, w), bool), residual_rms=np.zeros((h, w), np.float32),
-        iterations=0, cost_history=(0.0,),
-    )
-
-
-def _solve_numba(
-    inputs: _Inputs, kernel: ModuleType, *, scale: float | None, fit: bool, iterations: int,
-    tol: float,
-) -> HKResult:
-    """solve_hk with the numba backend: the pixels gathered (as :func:`_prepare`), the
-    passes, and the result images, each a compiled loop over the pixels."""
-    _, h, w = inputs.images.shape
-    gathered = _gather_numba(inputs, kernel)
-    if gathered is None:
-        return _nothing_valid((h, w), scale)
-    pix, counts, data, n0, rho0 = gathered
-    passes = _NumbaPasses(kernel, data, tau=float(inputs.params.optical_depth), n=n0,
-                          rho=rho0)
-    a_scale, history, done = _minimise(
-        passes, scale=scale, fit=fit, iterations=iterations, tol=tol,
-    )
-    normals = np.zeros((h * w, 3), np.float32)
-    albedo = np.zeros(h * w, np.float32)
-    rms = np.zeros(h * w, np.float32)
-    valid = np.zeros(h * w, bool)
-    kernel.finish(pix, passes.n, passes.rho, passes.sums, counts, normals, albedo, rms, valid)
-    return HKResult(
-        normals=normals.reshape(h, w, 3), albedo=albedo.reshape(h, w), scale=float(a_scale),
-        valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w), iterations=done,
-        cost_history=tuple(history),
-    )
-
-
-@contextmanager
-def _numba_threads() -> Iterator[None]:
-    """numba's threads for this thread: at most ``_MAX_THREADS``, chunks of pixels dealt out
-    as threads free up (another process may hold a core); restored on exit."""
-    import numba
-
-    saved = (numba.get_num_threads(), numba.get_parallel_chunksize())
-    numba.set_num_threads(max(1, min(_MAX_THREADS, numba.config.NUMBA_NUM_THREADS)))
-    numba.set_parallel_chunksize(1)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(saved[0])
-        numba.set_parallel_chunksize(saved[1])
-
-
-def _float_array(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """``a`` reshaped, C-contiguous, float32 or float64 (other dtypes as float64): the
-    dtypes the gather kernels are compiled for."""
-    if a.dtype not in (np.float32, np.float64):
-        a = a.astype(np.float64)
-    return np.ascontiguousarray(a).reshape(shape)
-
-
-def _gather_numba(
-    inputs: _Inputs, kernel: ModuleType,
-) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...], np.ndarray, np.ndarray] | None:
-    """The solvable pixels in the numba passes' layout, as :func:`_prepare` gathers them
-    for the numpy backend (the same pixels, values and checks): (their flat indices (N,),
-    usable measurements (N,) float64, the passes' data (values, usable, lights, views,
-    intensity, phase), initial normals (3, N) float32, albedo (N,) float32), or None if
-    there are none."""
-    imgs, m, e, vw = inputs.images, inputs.mask, inputs.intensities, inputs.views
-    k, h, w = imgs.shape
-    f32 = np.float32
-    if imgs.dtype not in (np.float32, np.float64):  # (integers: exact in float32, as below)
-        imgs = imgs.astype(f32)
-    imgs = np.ascontiguousarray(imgs).reshape(k, h * w)
-    use_in = (
-        np.ones((1, 1), bool) if inputs.usable is None
-        else np.ascontiguousarray(inputs.usable).reshape(k, h * w)
-    )
-    e_in = _float_array(e, (k, h * w) if e.ndim == 3 else (k, 1))
-    n_in = _float_array(inputs.normals, (h * w, 3))
-    rho_in = _float_array(inputs.albedo, (h * w,))
-    cand = np.flatnonzero(m)
-    keep = np.empty(cand.size, bool)
-    counts = np.empty(cand.size, np.int32)
-    kernel.select_pixels(cand, imgs, use_in, e_in, n_in, rho_in, keep, counts)
-    pix = cand if keep.all() else cand[keep]
-    count = pix.size
-    if count == 0:
-        return None
-
-    # Directions, e and e p shared by all pixels, as _prepare forms them; the rest per pixel.
-    params = inputs.params
-    per_pixel_lights, per_pixel_views = inputs.per_pixel_lights, vw.ndim == 3
-    l_dirs = (np.empty((3, k, count), f32) if per_pixel_lights
-              else inputs.lights.T[:, :, None].astype(f32))
-    v_dirs = np.empty((3, count), f32) if per_pixel_views else vw[:, None].astype(f32)
-    inten = np.empty((k, count), f32) if e.ndim == 3 else e.astype(f32)[:, None]
-    if per_pixel_lights or per_pixel_views or e.ndim == 3:
-        phase = np.empty((k, count), f32)
-    else:
-        c_phi = _dot3(l_dirs, v_dirs[:, None, :])
-        c_sc = -c_phi if params.phase is PhaseConvention.PHYSICAL else c_phi
-        phase = inten * henyey_greenstein(np.clip(c_sc, -1, 1), params.g)
-    g = f32(params.g)
-    hg = np.array([1 + g * g, 2 * g, 1 - g * g, f32(4 * math.pi)], f32)
-    lights_in = (_float_array(inputs.lights, (k, h * w, 3)) if per_pixel_lights
-                 else np.zeros((1, 1, 3), f32))
-    views_in = _float_array(vw, (h * w, 3)) if per_pixel_views else np.zeros((1, 3), f32)
-    values = np.empty((k, count), f32)
-    use = np.empty((k, count), bool)
-    n0 = np.empty((3, count), f32)
-    rho0 = np.empty(count, f32)
-    counts_out = np.empty(count, np.float64)
-    bad = np.zeros(count, np.uint8)
-    kernel.gather(pix, imgs, use_in, e_in, n_in, rho_in, lights_in, views_in, hg,
-                  params.phase is PhaseConvention.PHYSICAL, _MIN_INIT_CR, values, use, inten,
-                  phase, l_dirs, v_dirs, n0, rho0, counts_out, bad)
-    if per_pixel_lights or per_pixel_views:
-        flags = int(np.bitwise_or.reduce(bad))
-        for name, non_finite, zero in (
-            ("lights", kernel.BAD_LIGHT, kernel.ZERO_LIGHT),
-            ("views", kernel.BAD_VIEW, kernel.ZERO_VIEW),
-        ):  # the messages of _unit_columns
-            if flags & non_finite:
-                raise FingerpsReconError(
-                    f"{name} contain non-finite values inside the mask; check the calibration"
-                )
-            if flags & zero:
-                raise FingerpsReconError(f"{name} contain zero vectors inside the mask")
-    return pix, counts_out, (values, use, l_dirs, v_dirs, inten, phase), n0, rho0
 
 
 @dataclass(frozen=True)
@@ -567,6 +433,11 @@ class _Passes(Protocol):
 
     def commit(self, scales: tuple[float, float], *, at: float, fit: bool) -> list[float]: ...
 
+    def result(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The first ``count`` pixels' normals (3, count) float32, albedo (count,) float32
+        and sums (15, count) float64."""
+        ...
+
 
 class _NumpyPasses:
     """The passes of the numpy backend: blocks of ``_BLOCK`` pixels in worker threads
@@ -607,64 +478,77 @@ class _NumpyPasses:
 
 
 class _NumbaPasses:
-    """The passes of the numba backend (:mod:`fingerps_recon.hk_kernel`): one compiled,
-    vectorised loop over the pixels per pass, in numba's threads (:func:`_numba_threads`),
-    the global sums added up per chunk of pixels in a fixed order. ``data``: the gathered
-    (values, usable, lights, views, intensity, phase) (:func:`_gather_numba`); ``n`` (3, N)
-    and ``rho`` (N,) float32 the initial state (updated in place)."""
+    """The passes of the numba backend (:mod:`fingerps_recon.hk_kernel`): one compiled loop
+    over the pixels per pass, in numba's threads (at most ``_MAX_THREADS``), the global
+    sums added up per chunk of pixels in a fixed order. A context manager (numba's thread
+    count and chunk size for this thread are restored on exit)."""
 
-    def __init__(
-        self, kernel: ModuleType, data: tuple[np.ndarray, ...], *, tau: float, n: np.ndarray,
-        rho: np.ndarray,
-    ) -> None:
+    def __init__(self, columns: _Columns, kernel: ModuleType) -> None:
+        import numba
+
+        self.kernel, self._numba = kernel, numba
         f32 = np.float32
-        self.kernel, self.data, self.n, self.rho = kernel, data, n, rho
-        count = rho.size
+        count = columns.albedo.size
+        self.count = count
         self.chunks = max(1, -(-count // kernel.CHUNK))
-        self.tau = tau
-        self.neg_tau = f32(-tau)
-        consts = np.zeros(kernel.N_CONSTS, f32)
-        for index, value in (
-            (kernel.VALUE_FLOOR, _VALUE_FLOOR), (kernel.DERIVATIVE_FLOOR, _DERIVATIVE_FLOOR),
-            (kernel.LAMBDA_DOWN, _LAMBDA_DOWN), (kernel.LAMBDA_UP, _LAMBDA_UP),
-            (kernel.LAMBDA_MIN, _LAMBDA_MIN), (kernel.LAMBDA_MAX, _LAMBDA_MAX),
-        ):
-            consts[index] = value
-        self.consts = consts
+        lights = (
+            columns.lights if columns.per_pixel_lights
+            else columns.lights.T[:, :, None]  # (K, 3) -> (3, K, 1)
+        )
+        self.data = (
+            np.ascontiguousarray(columns.values, f32), np.ascontiguousarray(columns.usable),
+            np.ascontiguousarray(lights, f32), np.ascontiguousarray(columns.views, f32),
+            np.ascontiguousarray(columns.intensity, f32),
+            np.ascontiguousarray(columns.phase, f32),
+        )
+        self.tau = float(columns.tau)
+        self.consts = np.array(
+            [_VALUE_FLOOR, _DERIVATIVE_FLOOR, _LAMBDA_DOWN, _LAMBDA_UP, _LAMBDA_MIN,
+             _LAMBDA_MAX], np.float64,
+        )
+        self.n = np.ascontiguousarray(columns.normals.T, f32)  # (N, 3)
+        self.rho = columns.albedo.astype(f32)
         self.lam = np.full(count, _LAMBDA_START, f32)
-        self.sums = np.zeros((_N_SUMS, count), f32)
-        self.sums_new = np.zeros((_N_SUMS, count), f32)
-        self.n_new = np.empty_like(n)
-        self.rho_new = np.empty_like(rho)
-        self.delta0 = np.zeros((3, count), f32)
-        self.w = np.zeros((3, count), f32)
-        self.rows = np.zeros((5, count), f32)
+        self.sums = np.zeros((count, _N_SUMS), f32)
+        self.sums_new = np.zeros((count, _N_SUMS), f32)
+        self.n_new = np.empty_like(self.n)
+        self.rho_new = np.empty_like(self.rho)
+        self.delta0 = np.zeros((count, 3), f32)
+        self.w = np.zeros((count, 3), f32)
+        self.rows = np.zeros((count, 3), np.float64)
+        threads = max(1, min(_MAX_THREADS, numba.config.NUMBA_NUM_THREADS))
+        self._saved = (numba.get_num_threads(), numba.get_parallel_chunksize())
+        numba.set_num_threads(threads)
+        numba.set_parallel_chunksize(1)  # chunks dealt out as threads free up
+
+    def __enter__(self) -> _NumbaPasses:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        threads, chunksize = self._saved
+        self._numba.set_num_threads(threads)
+        self._numba.set_parallel_chunksize(chunksize)
 
     def _parts(self, width: int) -> np.ndarray:
         return np.zeros((self.chunks, width), np.float64)
 
-    def _a_tau(self, scale: float) -> np.float32:
-        return np.float32(scale * self.tau)
-
     def linear(self) -> list[float]:
         parts = self._parts(2)
-        self.kernel.linear_sums(self.n, *self.data, self.neg_tau, self.consts, self.rows, parts)
+        self.kernel.linear_sums(self.n, *self.data, self.tau, self.consts, self.rows, parts)
         return [float(v) for v in parts.sum(axis=0)]
 
     def start(self, scale: float, *, fit: bool) -> list[float]:
         parts = self._parts(5)
-        self.kernel.start(self.n, self.rho, self.lam, self.rows, float(scale),
-                          self._a_tau(scale), self.neg_tau, *self.data, self.consts,
-                          self.sums, self.delta0, self.w, parts)
+        self.kernel.start(self.n, self.rho, self.lam, self.rows, float(scale), self.tau,
+                          *self.data, self.consts, self.sums, self.delta0, self.w, parts)
         total = [float(v) for v in parts.sum(axis=0)]
         return total if fit else total[:1]
 
     def candidate(self, scales: tuple[float, float], *, fit: bool) -> list[float]:
         parts = self._parts(3)
         self.kernel.candidate(self.n, self.rho, self.delta0, self.w, float(scales[0]),
-                              float(scales[1]), self._a_tau(scales[1]), self.neg_tau,
-                              *self.data, self.consts, self.sums, self.n_new, self.rho_new,
-                              self.sums_new, parts)
+                              float(scales[1]), self.tau, *self.data, self.consts, self.sums,
+                              self.n_new, self.rho_new, self.sums_new, parts)
         return [float(v) for v in parts.sum(axis=0)] if fit else []
 
     def commit(self, scales: tuple[float, float], *, at: float, fit: bool) -> list[float]:
@@ -674,6 +558,9 @@ class _NumbaPasses:
                            self.sums_new, self.delta0, self.w, parts)
         total = [float(v) for v in parts.sum(axis=0)]
         return total if fit else total[:1]
+
+    def result(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.n[:count].T, self.rho[:count], self.sums[:count].T.astype(np.float64)
 
 
 def _total(parts: list[tuple[float, ...]]) -> list[float]:
@@ -1037,7 +924,7 @@ _ROWS_WITH_SCALE = (
 )
 
 
-def _check(
+def _prepare(
     images: np.ndarray,
     lights: np.ndarray,
     *,
@@ -1048,8 +935,12 @@ def _check(
     intensities: np.ndarray | None,
     usable: np.ndarray | None,
     params: SkinParams,
-) -> _Inputs:
-    """Check the inputs (FingerpsReconError on bad ones); nothing large is converted."""
+) -> tuple[_Columns, np.ndarray, tuple[int, int]]:
+    """Check the inputs and gather the valid pixels.
+
+    Returns (the valid pixels' data, their flat indices (N,), (H, W)). Only the masked
+    pixels of the inputs are converted.
+    """
     imgs = np.asarray(images)
     if imgs.ndim != 3 or not (
         np.issubdtype(imgs.dtype, np.integer) or np.issubdtype(imgs.dtype, np.floating)
@@ -1117,38 +1008,6 @@ def _check(
         lgt = _unit_or_raise(lgt.astype(np.float64), "lights")
     if vw.ndim == 1:
         vw = _unit_or_raise(vw.astype(np.float64), "views")
-
-    return _Inputs(
-        images=imgs, lights=lgt, per_pixel_lights=per_pixel, mask=m, normals=n_in,
-        albedo=rho_in, views=vw, intensities=e, usable=use_in, params=params,
-    )
-
-
-@dataclass(frozen=True)
-class _Inputs:
-    """solve_hk's inputs, checked (:func:`_check`): as given, except distant lights (K, 3)
-    and a single view (3,) normalised (float64) and intensities (K,) as float64; ``usable``
-    None for the default (finite and > 0)."""
-
-    images: np.ndarray  # (K, H, W)
-    lights: np.ndarray  # (K, 3) or (K, H, W, 3)
-    per_pixel_lights: bool
-    mask: np.ndarray  # (H, W) bool
-    normals: np.ndarray  # (H, W, 3)
-    albedo: np.ndarray  # (H, W)
-    views: np.ndarray  # (3,) or (H, W, 3)
-    intensities: np.ndarray  # (K,) or (K, H, W)
-    usable: np.ndarray | None  # (K, H, W) bool
-    params: SkinParams
-
-
-def _prepare(inputs: _Inputs) -> tuple[_Columns, np.ndarray, tuple[int, int]]:
-    """The valid pixels' data (numpy backend): (their columns, their flat indices (N,),
-    (H, W)). Only the masked pixels of the inputs are converted."""
-    imgs, lgt, per_pixel, m = inputs.images, inputs.lights, inputs.per_pixel_lights, inputs.mask
-    n_in, rho_in, vw, e = inputs.normals, inputs.albedo, inputs.views, inputs.intensities
-    use_in, params = inputs.usable, inputs.params
-    k, h, w = imgs.shape
 
     # Candidate pixels: in the mask, with a usable initial normal and albedo.
     # (np.take gathers much faster than fancy indexing.)
