@@ -53,16 +53,13 @@ approached: its cost stays within about 1e-6 (relative) of the float64 optimum.
 
 from __future__ import annotations
 
-import importlib
 import math
 import os
-import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
-from types import ModuleType
-from typing import Protocol, TypeVar
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -90,45 +87,6 @@ _BLOCK = 16384
 _T = TypeVar("_T")
 # Worker threads of the evaluation (at most this many, at most the number of CPUs).
 _MAX_THREADS = 2
-# solve_hk's backends, and the outcome of importing the numba kernels (module or None, and
-# the reason it failed), tried once per process.
-_BACKENDS = ("auto", "numba", "numpy")
-_KERNEL: list[ModuleType | None] = []
-_KERNEL_ERROR: list[str] = [""]
-
-
-def _kernel_module(backend: str) -> ModuleType | None:
-    """:mod:`fingerps_recon.hk_kernel` if ``backend`` is "numba" or "auto" and numba can be
-    imported, else None (the numpy backend)."""
-    if backend == "numpy":
-        return None
-    if not _KERNEL:
-        try:
-            _KERNEL.append(importlib.import_module(f"{__package__}.hk_kernel"))
-        except Exception as exc:  # ImportError, or numba failing to set itself up
-            _KERNEL.append(None)
-            _KERNEL_ERROR[0] = f"{type(exc).__name__}: {exc}"
-    return _KERNEL[0]
-
-
-def warm_up_hk() -> float:
-    """Compile the numba backend's kernels, or load them from numba's on-disk cache.
-
-    The first ``solve_hk(backend="numba" or "auto")`` of a process does this otherwise:
-    call it when a node starts so that the first burst is as fast as any. Solves a tiny
-    problem (a few pixels, one iteration). Returns the seconds it took (the numba import
-    included); 0.0 if numba is not available (``solve_hk`` then uses numpy).
-    """
-    start = time.perf_counter()
-    if _kernel_module("auto") is None:
-        return 0.0
-    lights = np.array([[0.4, 0.0, 0.9165], [-0.2, 0.35, 0.9150], [-0.2, -0.35, 0.9150]])
-    normals = np.zeros((2, 2, 3))
-    normals[..., 2] = 1.0
-    images = 40.0 + 100.0 * np.einsum("kc,hwc->khw", lights, normals)
-    solve_hk(images, lights, mask=np.ones((2, 2), bool), init_normals=normals,
-             init_albedo=np.full((2, 2), 100.0), iterations=1, tol=0.0, backend="numba")
-    return time.perf_counter() - start
 
 
 @dataclass(frozen=True)
@@ -181,7 +139,6 @@ def solve_hk(
     scale: float | None = None,
     iterations: int = 10,
     tol: float = 1e-6,
-    backend: str = "auto",
 ) -> HKResult:
     """Normals, albedo and the global scale A under the simplified HK model (Eq. 6-7).
 
@@ -225,12 +182,6 @@ def solve_hk(
         Maximum number of Levenberg–Marquardt iterations, >= 0.
     tol : float
         Stop when an iteration lowers the total cost by less than ``tol`` times it, >= 0.
-    backend : {"auto", "numba", "numpy"}
-        Where the per-pixel passes run: "numba", compiled loops
-        (:mod:`fingerps_recon.hk_kernel`; needs numba); "numpy", the reference (vectorised
-        passes over blocks of pixels); "auto", numba when it can be imported, else numpy.
-        The same algorithm and minimum either way (results agree to float32 rounding). The
-        first numba call in a process compiles or loads the kernels (:func:`warm_up_hk`).
 
     Returns
     -------
@@ -240,16 +191,8 @@ def solve_hk(
     ------
     FingerpsReconError
         On inconsistent shapes, fewer than 3 lights, non-finite or zero light directions,
-        non-positive intensities, or bad options (``backend="numba"`` without numba). The
-        inputs are not modified.
+        non-positive intensities, or bad options. The inputs are not modified.
     """
-    if backend not in _BACKENDS:
-        raise FingerpsReconError(f"backend must be one of {_BACKENDS}, got {backend!r}")
-    if backend == "numba" and _kernel_module("numba") is None:
-        raise FingerpsReconError(
-            f"backend='numba' but the numba kernels cannot be imported ({_KERNEL_ERROR[0]}); "
-            "install numba (requirements.txt) or use backend='numpy' or 'auto'"
-        )
     if scale is not None and not (
         isinstance(scale, (int, float, np.integer, np.floating))
         and math.isfinite(scale) and scale >= 0
@@ -274,14 +217,17 @@ def solve_hk(
             valid=np.zeros((h, w), bool), residual_rms=np.zeros((h, w), np.float32),
             iterations=0, cost_history=(0.0,),
         )
-    kernel = _kernel_module(backend)
-    passes = _NumbaPasses(columns, kernel) if kernel is not None else _NumpyPasses(columns)
-    with passes:
+    data, n0, rho0 = columns.pack()
+    state = _State.start(n0, rho0)
+    with _Evaluator(data) as evaluator:
         a_scale, history, done = _minimise(
-            passes, scale=scale, fit=scale is None, iterations=int(iterations), tol=float(tol),
+            evaluator, state, scale=scale, fit=scale is None,
+            iterations=int(iterations), tol=float(tol),
         )
-        count = pix.size
-        n, rho, sums = passes.result(count)
+
+    count = pix.size
+    n, rho = state.n[:, :count], state.rho[:count]
+    sums = state.sums[:, :count].astype(np.float64)
     cost = sums[_COST]
     ok = np.all(np.isfinite(n), axis=0) & np.isfinite(rho) & _determined(sums)
     normals = np.zeros((h * w, 3), np.float32)
@@ -356,25 +302,27 @@ class _State:
 
 
 def _minimise(
-    passes: _Passes, *, scale: float | None, iterations: int, tol: float, fit: bool = True,
+    evaluator: _Evaluator, st: _State, *, scale: float | None, iterations: int, tol: float,
+    fit: bool = True,
 ) -> tuple[float, list[float], int]:
-    """Initialisation and the Levenberg–Marquardt loop (module docstring), in place on the
-    state of ``passes`` (either backend: the same host logic, the same per-pixel passes).
+    """Initialisation and the Levenberg–Marquardt loop (module docstring), in place on ``st``.
 
-    Each iteration is two passes over the pixels: the candidates, their sums and the choice
+    Each iteration is two passes over the blocks: the candidates, their sums and the choice
     at the trial A; then, once the new A is known, the commit fused with the next step.
     ``scale``: A's initial value (None: the global linear fit); ``fit``: whether A is
     fitted or kept. Returns (A, cost history, iterations done).
     """
+    run = evaluator.map
     # A and every rho jointly by linear least squares, normals fixed: with the per-pixel
     # sums PP, PC, CC, PI, CI, rho_j(A) = (CI - A PC) / CC and
     # A = sum_j (PI - PC CI / CC) / sum_j (PP - PC^2 / CC). Then rho for the initial A.
-    num, den = passes.linear()
+    num, den = _total(run(partial(_block_linear, ev=evaluator, st=st)))
     if scale is None:
         a_scale = max(num / den, 0.0) if den > 0 else 0.0
     else:
         a_scale = float(scale)
-    total, *schur = passes.start(a_scale, fit=fit)
+    parts = run(partial(_block_start, ev=evaluator, st=st, scale=a_scale, fit=fit))
+    total, *schur = _total(parts)
     lam_scale = _LAMBDA_START
     history = [total]
     done = 0
@@ -388,14 +336,14 @@ def _minimise(
             if den > 1e-12 * d_sum:
                 trial = max(a_scale + (g_a - c_delta) / den, 0.0)
         scales = (a_scale, trial)
-        parts = passes.candidate(scales, fit=fit)
+        parts = run(partial(_block_candidate, ev=evaluator, st=st, scales=scales, fit=fit))
         new_scale, fell_back = trial, False
         if fit:
             # A in closed form for the states chosen at the trial A (the model is linear in
             # A; their cost at A is a known quadratic). The commit re-chooses at that A,
             # which can only lower the cost further. If even so the total would not drop,
             # keep the old A (each pixel then takes the better of its two states there).
-            cost, g_sum, d_sum = parts
+            cost, g_sum, d_sum = _total(parts)
             delta = g_sum / d_sum if d_sum > 0 else 0.0
             best = max(trial + delta, 0.0)
             delta = best - trial
@@ -406,7 +354,8 @@ def _minimise(
                 min(lam_scale * _LAMBDA_UP, _LAMBDA_MAX) if fell_back
                 else max(lam_scale * _LAMBDA_DOWN, _LAMBDA_MIN)
             )
-        new_total, *schur = passes.commit(scales, at=new_scale, fit=fit)
+        parts = run(partial(_block_commit, st=st, scales=scales, at=new_scale, fit=fit))
+        new_total, *schur = _total(parts)
         a_scale = new_scale
         decrease = total - new_total
         total = new_total
@@ -414,153 +363,6 @@ def _minimise(
         if decrease <= tol * history[-2] and not fell_back:
             break
     return a_scale, history, done
-
-
-class _Passes(Protocol):
-    """The per-pixel passes of :func:`_minimise`, with the state they update in place.
-
-    Each pass returns its global sums (float): ``linear`` the numerator and denominator of
-    A's linear fit; ``start`` and ``commit`` the total cost and the Schur parts of
-    :func:`_block_step` (P.r, (J^T P).delta0, P.P, (J^T P).w); ``candidate`` the parts of
-    the choice at the trial A (chosen cost, P.r, P.P), or nothing if A is fixed.
-    """
-
-    def linear(self) -> list[float]: ...
-
-    def start(self, scale: float, *, fit: bool) -> list[float]: ...
-
-    def candidate(self, scales: tuple[float, float], *, fit: bool) -> list[float]: ...
-
-    def commit(self, scales: tuple[float, float], *, at: float, fit: bool) -> list[float]: ...
-
-    def result(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The first ``count`` pixels' normals (3, count) float32, albedo (count,) float32
-        and sums (15, count) float64."""
-        ...
-
-
-class _NumpyPasses:
-    """The passes of the numpy backend: blocks of ``_BLOCK`` pixels in worker threads
-    (:class:`_Evaluator`). A context manager (the thread pool is shut down on exit)."""
-
-    def __init__(self, columns: _Columns) -> None:
-        data, n0, rho0 = columns.pack()
-        self.st = _State.start(n0, rho0)
-        self.ev = _Evaluator(data)
-
-    def __enter__(self) -> _NumpyPasses:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.ev.__exit__(*exc)
-
-    def linear(self) -> list[float]:
-        return _total(self.ev.map(partial(_block_linear, ev=self.ev, st=self.st)))
-
-    def start(self, scale: float, *, fit: bool) -> list[float]:
-        return _total(self.ev.map(
-            partial(_block_start, ev=self.ev, st=self.st, scale=scale, fit=fit)
-        ))
-
-    def candidate(self, scales: tuple[float, float], *, fit: bool) -> list[float]:
-        return _total(self.ev.map(
-            partial(_block_candidate, ev=self.ev, st=self.st, scales=scales, fit=fit)
-        ))
-
-    def commit(self, scales: tuple[float, float], *, at: float, fit: bool) -> list[float]:
-        return _total(self.ev.map(
-            partial(_block_commit, st=self.st, scales=scales, at=at, fit=fit)
-        ))
-
-    def result(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        st = self.st
-        return st.n[:, :count], st.rho[:count], st.sums[:, :count].astype(np.float64)
-
-
-class _NumbaPasses:
-    """The passes of the numba backend (:mod:`fingerps_recon.hk_kernel`): one compiled loop
-    over the pixels per pass, in numba's threads (at most ``_MAX_THREADS``), the global
-    sums added up per chunk of pixels in a fixed order. A context manager (numba's thread
-    count and chunk size for this thread are restored on exit)."""
-
-    def __init__(self, columns: _Columns, kernel: ModuleType) -> None:
-        import numba
-
-        self.kernel, self._numba = kernel, numba
-        f32 = np.float32
-        count = columns.albedo.size
-        self.count = count
-        self.chunks = max(1, -(-count // kernel.CHUNK))
-        lights = (
-            columns.lights if columns.per_pixel_lights
-            else columns.lights.T[:, :, None]  # (K, 3) -> (3, K, 1)
-        )
-        self.data = (
-            np.ascontiguousarray(columns.values, f32), np.ascontiguousarray(columns.usable),
-            np.ascontiguousarray(lights, f32), np.ascontiguousarray(columns.views, f32),
-            np.ascontiguousarray(columns.intensity, f32),
-            np.ascontiguousarray(columns.phase, f32),
-        )
-        self.tau = float(columns.tau)
-        self.consts = np.array(
-            [_VALUE_FLOOR, _DERIVATIVE_FLOOR, _LAMBDA_DOWN, _LAMBDA_UP, _LAMBDA_MIN,
-             _LAMBDA_MAX], np.float64,
-        )
-        self.n = np.ascontiguousarray(columns.normals.T, f32)  # (N, 3)
-        self.rho = columns.albedo.astype(f32)
-        self.lam = np.full(count, _LAMBDA_START, f32)
-        self.sums = np.zeros((count, _N_SUMS), f32)
-        self.sums_new = np.zeros((count, _N_SUMS), f32)
-        self.n_new = np.empty_like(self.n)
-        self.rho_new = np.empty_like(self.rho)
-        self.delta0 = np.zeros((count, 3), f32)
-        self.w = np.zeros((count, 3), f32)
-        self.rows = np.zeros((count, 3), np.float64)
-        threads = max(1, min(_MAX_THREADS, numba.config.NUMBA_NUM_THREADS))
-        self._saved = (numba.get_num_threads(), numba.get_parallel_chunksize())
-        numba.set_num_threads(threads)
-        numba.set_parallel_chunksize(1)  # chunks dealt out as threads free up
-
-    def __enter__(self) -> _NumbaPasses:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        threads, chunksize = self._saved
-        self._numba.set_num_threads(threads)
-        self._numba.set_parallel_chunksize(chunksize)
-
-    def _parts(self, width: int) -> np.ndarray:
-        return np.zeros((self.chunks, width), np.float64)
-
-    def linear(self) -> list[float]:
-        parts = self._parts(2)
-        self.kernel.linear_sums(self.n, *self.data, self.tau, self.consts, self.rows, parts)
-        return [float(v) for v in parts.sum(axis=0)]
-
-    def start(self, scale: float, *, fit: bool) -> list[float]:
-        parts = self._parts(5)
-        self.kernel.start(self.n, self.rho, self.lam, self.rows, float(scale), self.tau,
-                          *self.data, self.consts, self.sums, self.delta0, self.w, parts)
-        total = [float(v) for v in parts.sum(axis=0)]
-        return total if fit else total[:1]
-
-    def candidate(self, scales: tuple[float, float], *, fit: bool) -> list[float]:
-        parts = self._parts(3)
-        self.kernel.candidate(self.n, self.rho, self.delta0, self.w, float(scales[0]),
-                              float(scales[1]), self.tau, *self.data, self.consts, self.sums,
-                              self.n_new, self.rho_new, self.sums_new, parts)
-        return [float(v) for v in parts.sum(axis=0)] if fit else []
-
-    def commit(self, scales: tuple[float, float], *, at: float, fit: bool) -> list[float]:
-        parts = self._parts(5)
-        self.kernel.commit(self.n, self.rho, self.lam, float(scales[0]), float(scales[1]),
-                           float(at), self.consts, self.sums, self.n_new, self.rho_new,
-                           self.sums_new, self.delta0, self.w, parts)
-        total = [float(v) for v in parts.sum(axis=0)]
-        return total if fit else total[:1]
-
-    def result(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.n[:count].T, self.rho[:count], self.sums[:count].T.astype(np.float64)
 
 
 def _total(parts: list[tuple[float, ...]]) -> list[float]:
