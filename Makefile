@@ -26,10 +26,13 @@ $(STAMPS)/venv: requirements.txt constraints.txt tools/mend_ros_wheel_cmake.py
 	@touch $@
 
 # --symlink-install: Python sources are used in place, so editing a node needs no rebuild.
+# Then the numba kernels are compiled into their on-disk cache, so that no node compiles
+# during a demo, a test or a measurement.
 $(STAMPS)/build: $(STAMPS)/venv $(SRC_FILES)
 	$(ROS) colcon --log-base log build --symlink-install \
 	    --event-handlers console_cohesion- status- summary+ \
 	    --cmake-args -DBUILD_TESTING=OFF
+	$(ROS) python -m fingerps_recon.kernel_warm_up
 	@touch $@
 
 demo: build

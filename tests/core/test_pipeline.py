@@ -28,7 +28,14 @@ from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import FingerTruth, Scene, SimulatedRig
 from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.pipeline import Reconstruction, ReconstructionOptions, reconstruct
+from fingerps_recon.pipeline import (
+    Model,
+    Reconstruction,
+    ReconstructionOptions,
+    prepare_calibration,
+    reconstruct,
+    reconstruct_prepared,
+)
 
 FULL_SCALE = 255.0
 #: Mean angular error bound (deg): measured 3.215 with the true lights and intensities,
@@ -214,3 +221,32 @@ def test_inputs_are_not_modified(rig: SimulatedRig, burst: Burst) -> None:
         for name, value in given.items():
             np.testing.assert_array_equal(value, before[name],
                                           err_msg=f"{name} modified (without {left_out})")
+
+
+def test_a_calibration_prepared_once_serves_every_burst(rig: SimulatedRig, burst: Burst) -> None:
+    flat = flat_field_maps(burst.white, dark=burst.white_dark, saturation_level=FULL_SCALE)
+    calibration = {"intensities": flat.relative_intensities, "portions": flat.portions,
+                   "led_positions_optical": rig.led_positions_optical}
+    options = ReconstructionOptions(model=Model.HK, enhance=True)
+    once = reconstruct(burst.images, lights_ps=rig.light_directions_ps(),
+                       camera_matrix=rig.camera_matrix, full_scale=FULL_SCALE, options=options,
+                       **calibration)
+    prepared = prepare_calibration(rig.light_directions_ps(), camera_matrix=rig.camera_matrix,
+                                   shape=burst.images.shape[1:], options=options, **calibration)
+    assert prepared.lights.shape == (rig.led_count, *burst.images.shape[1:], 3)  # near lights
+    assert prepared.light_power.shape == burst.images.shape  # the white target's irradiance
+    for _ in range(2):  # the prepared arrays are not changed by a burst
+        again = reconstruct_prepared(burst.images, prepared, full_scale=FULL_SCALE,
+                                     options=options)
+        np.testing.assert_array_equal(again.mask, once.mask)
+        np.testing.assert_array_equal(again.normals_ps, once.normals_ps)
+        np.testing.assert_array_equal(again.depth_m, once.depth_m)
+        assert again.hk_scale == once.hk_scale
+
+
+def test_a_burst_of_another_size_than_the_prepared_calibration_is_refused(
+        rig: SimulatedRig, burst: Burst) -> None:
+    prepared = prepare_calibration(rig.light_directions_ps(), camera_matrix=rig.camera_matrix,
+                                   shape=burst.images.shape[1:])
+    with pytest.raises(FingerpsReconError, match=r"recalibrate .* for this image size"):
+        reconstruct_prepared(burst.images[:, :-2, :], prepared, full_scale=FULL_SCALE)

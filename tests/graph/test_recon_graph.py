@@ -122,6 +122,9 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     spin_until(lambda: any(v.get("calibrated") == "True"
                            for v in _diagnostic_values(diagnostics)),
                "recon to report the light calibration received")
+    spin_until(lambda: any(v.get("ready") == "True" for v in _diagnostic_values(diagnostics)),
+               "recon to report its kernels warmed up (ready)")
+    assert "reconstruction ready: " in recon.output  # one log line: compiled or loaded
 
     incomplete = _burst(rig, images, 1, leds=[0, 1, 2, 4, 5, 6])
     nothing_in_view = _burst(rig, empty_images, 2)
@@ -182,6 +185,17 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     spin_until(counted, "diagnostics counting the incomplete, the failed and the done burst",
                timeout=5.0)
     assert counted(), _diagnostic_values(diagnostics)[-1]
+
+    # A second burst of the same camera with the same calibration: nothing is prepared again.
+    again = _burst(rig, images, 4)
+    burst_pub.publish(again)
+    spin_until(lambda: all(_key(again.header) in received[name] for name in OUTPUTS),
+               "the outputs of the second complete burst", timeout=20.0)
+    spin_until(lambda: any(int(v.get("bursts_done", 0)) >= 2 for v in
+                           _diagnostic_values(diagnostics)),
+               "diagnostics counting the second burst", timeout=5.0)
+    last = [v for v in _diagnostic_values(diagnostics) if int(v.get("bursts_done", 0)) >= 2]
+    assert last[-1]["calibrations_prepared"] == "1", last[-1]
 
     recon.send_signal(signal.SIGINT)
     assert recon.wait() == 0, recon.output

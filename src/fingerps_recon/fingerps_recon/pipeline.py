@@ -29,7 +29,7 @@ import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.finger_mask import finger_mask
-from fingerps_recon.flat_field import apply_flat_field
+from fingerps_recon.flat_field import flat_field_gain
 from fingerps_recon.integration import (
     depth_to_points,
     integrate_normals,
@@ -94,6 +94,82 @@ class Reconstruction:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class PreparedCalibration:
+    """What a reconstruction needs that depends only on the calibration, the camera and the
+    image size: computed once by :func:`prepare_calibration` when one of them changes, then
+    used by every burst (:func:`reconstruct_prepared`).
+
+    Attributes
+    ----------
+    shape : (H, W)
+        Image size it was prepared for.
+    camera_matrix : (3, 3) float64
+        Intrinsics K, pixels.
+    lights : (K, 3) float64 or (K, H, W, 3) float32
+        Unit light directions, PS frame: distant lights, or per pixel (near lights).
+    light_power : None, (K,) float64 or (K, H, W) float32
+        Relative light intensities, or the per-pixel irradiance of the near lights.
+    flat_gain : None or (K, H, W) float32
+        Distant lights with a flat field: 1 / max(p_k, min portion), the factor of Eq. 11.
+    views : (3,) or (H, W, 3) float32
+        Unit directions towards the camera, PS frame: orthographic or per pixel.
+    """
+
+    shape: tuple[int, int]
+    camera_matrix: np.ndarray
+    lights: np.ndarray
+    light_power: np.ndarray | None
+    flat_gain: np.ndarray | None
+    views: np.ndarray
+
+    @property
+    def light_count(self) -> int:
+        return int(self.lights.shape[0])
+
+
+def prepare_calibration(
+    lights_ps: np.ndarray,
+    *,
+    camera_matrix: np.ndarray,
+    shape: tuple[int, int],
+    intensities: np.ndarray | None = None,
+    portions: np.ndarray | None = None,
+    led_positions_optical: np.ndarray | None = None,
+    options: ReconstructionOptions = ReconstructionOptions(),
+) -> PreparedCalibration:
+    """Prepare a calibration for bursts of ``shape`` (see :func:`reconstruct` for the
+    parameters): the near-light directions and irradiance, the flat-field gain (Eq. 11) and
+    the view directions. Raises ``FingerpsReconError`` on inconsistent inputs."""
+    h, w = (int(v) for v in shape)
+    if h < 1 or w < 1:
+        raise FingerpsReconError(f"image size must be at least 1 x 1, got {w} x {h}")
+    k_matrix = np.asarray(camera_matrix, dtype=np.float64)
+    lights = np.asarray(lights_ps, dtype=np.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise FingerpsReconError(f"light directions must be (K, 3), got {lights.shape}")
+    count = lights.shape[0]
+    if portions is not None and np.shape(portions) != (count, h, w):
+        raise FingerpsReconError(
+            f"flat-field maps {np.shape(portions)} do not fit the images {(count, h, w)}; "
+            "recalibrate the flat field for this camera mode")
+    light_power = None if intensities is None else np.asarray(intensities, dtype=np.float64)
+    flat_gain = None
+    if led_positions_optical is not None:
+        lights = near_light_directions_ps(
+            led_positions_optical, camera_matrix=k_matrix, shape=(h, w),
+            working_distance_m=options.working_distance_m)
+        if portions is not None:
+            light_power = _irradiance(portions, light_power, lights)
+    elif portions is not None:
+        flat_gain = flat_field_gain(portions)
+    views = (view_directions_ps(k_matrix, (h, w))
+             if options.projection is Projection.PERSPECTIVE
+             else np.array([0.0, 0.0, 1.0], dtype=np.float32))
+    return PreparedCalibration(shape=(h, w), camera_matrix=k_matrix, lights=lights,
+                               light_power=light_power, flat_gain=flat_gain, views=views)
+
+
 def reconstruct(
     images: np.ndarray,
     *,
@@ -107,7 +183,8 @@ def reconstruct(
     led_positions_optical: np.ndarray | None = None,
     options: ReconstructionOptions = ReconstructionOptions(),
 ) -> Reconstruction:
-    """Reconstruct one burst.
+    """Reconstruct one burst: :func:`prepare_calibration`, then :func:`reconstruct_prepared`
+    (a stream of bursts with one calibration should prepare it once).
 
     Parameters
     ----------
@@ -132,38 +209,57 @@ def reconstruct(
         LED positions in metres, optical frame: switches to the near-light model.
     """
     t0 = time.perf_counter()
+    if np.ndim(images) != 3:
+        raise FingerpsReconError(
+            f"a burst must be K images of one size, (K, H, W); got shape {np.shape(images)}")
+    prepared = prepare_calibration(
+        lights_ps, camera_matrix=camera_matrix, shape=np.shape(images)[1:],
+        intensities=intensities, portions=portions,
+        led_positions_optical=led_positions_optical, options=options)
+    result = reconstruct_prepared(images, prepared, full_scale=full_scale, dark=dark,
+                                  mask=mask, options=options)
+    result.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return result
+
+
+def reconstruct_prepared(
+    images: np.ndarray,
+    prepared: PreparedCalibration,
+    *,
+    full_scale: float,
+    dark: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    options: ReconstructionOptions = ReconstructionOptions(),
+) -> Reconstruction:
+    """Reconstruct one burst with a calibration prepared by :func:`prepare_calibration`
+    (with the same ``options``); the other parameters as :func:`reconstruct`."""
+    t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    stack = _checked_stack(images, len(lights_ps), full_scale=full_scale,
+    stack = _checked_stack(images, prepared.light_count, full_scale=full_scale,
                            shadow_fraction=options.shadow_fraction)
     shape = stack.shape[1:]
-    k_matrix = np.asarray(camera_matrix, dtype=np.float64)
+    if shape != prepared.shape:
+        raise FingerpsReconError(
+            f"images of {shape[1]} x {shape[0]} px but the calibration was prepared for "
+            f"{prepared.shape[1]} x {prepared.shape[0]}: the camera mode changed; "
+            "recalibrate (flat field and lights) for this image size")
+    k_matrix = prepared.camera_matrix
     saturated = stack >= options.saturation_fraction * full_scale
     if dark is not None:
         if np.shape(dark) != shape:
             raise FingerpsReconError(f"dark frame {np.shape(dark)} differs from the images {shape}")
-        stack = np.clip(stack - np.asarray(dark, dtype=np.float32), 0.0, None)
-    if portions is not None and np.shape(portions) != stack.shape:
-        raise FingerpsReconError(
-            f"flat-field maps {np.shape(portions)} do not fit the images {stack.shape}; "
-            "recalibrate the flat field for this camera mode")
-
-    lights = np.asarray(lights_ps, dtype=np.float64)
-    light_power = None if intensities is None else np.asarray(intensities, dtype=np.float64)
-    if led_positions_optical is not None:
-        lights = near_light_directions_ps(
-            led_positions_optical, camera_matrix=k_matrix, shape=shape,
-            working_distance_m=options.working_distance_m)
-        if portions is not None:
-            light_power = _irradiance(portions, light_power, lights)
-    elif portions is not None:
-        stack = apply_flat_field(stack, portions)
+        stack -= np.asarray(dark, dtype=np.float32)
+        np.maximum(stack, 0.0, out=stack)
+    if prepared.flat_gain is not None:
+        stack *= prepared.flat_gain
+    lights, light_power = prepared.lights, prepared.light_power
     # Saturated pixels stay excluded after any correction: mark them above the new limit.
     limit = float(stack.max()) + 1.0
-    stack[saturated] = limit
     if mask is None:
         mask = finger_mask(np.where(saturated, 0.0, stack), threshold=options.mask_threshold)
     elif np.shape(mask) != shape:
         raise FingerpsReconError(f"mask {np.shape(mask)} differs from the images {shape}")
+    np.copyto(stack, np.float32(limit), where=saturated)
     mask = np.asarray(mask, dtype=bool)
     if not mask.any():
         raise FingerpsReconError(
@@ -185,10 +281,8 @@ def reconstruct(
         from fingerps_recon.hk_solver import solve_hk
 
         t1 = time.perf_counter()
-        views = (view_directions_ps(k_matrix, shape)
-                 if options.projection is Projection.PERSPECTIVE else (0.0, 0.0, 1.0))
         hk = solve_hk(stack, lights, mask=valid, init_normals=normals, init_albedo=albedo,
-                      views=views, intensities=light_power, usable=usable,
+                      views=prepared.views, intensities=light_power, usable=usable,
                       iterations=options.hk_iterations)
         normals, albedo, valid, hk_scale = hk.normals, hk.albedo, hk.valid & valid, hk.scale
         timings["hk"] = (time.perf_counter() - t1) * 1e3

@@ -1,13 +1,17 @@
 """recon_node: complete bursts in; normals, normal map, depth and a point cloud out.
 
-Thin ROS adapter around ``fingerps_recon.pipeline.reconstruct``. The burst callback only
-enqueues; a worker thread reconstructs, so a slow reconstruction never blocks intake. The
-queue is bounded and drops the oldest burst, and the drops are counted.
+Thin ROS adapter around ``fingerps_recon.pipeline.reconstruct_prepared``. The burst
+callback only enqueues; a worker thread reconstructs, so a slow reconstruction never blocks
+intake. The queue is bounded and drops the oldest burst, and the drops are counted. The
+worker first warms the compiled kernels (``/diagnostics`` says ``ready`` once it has), and
+prepares the calibration for the bursts' camera once, when the calibration, the
+camera_info or the image size changes (:class:`PreparedCalibrations`).
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -21,15 +25,18 @@ from fingerps_recon import qos, topics
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.frames import optical_to_ps, ps_to_optical
 from fingerps_recon.image_conversion import array_to_image, image_to_array
+from fingerps_recon.kernel_warm_up import warm_up_kernels
 from fingerps_recon.node_runner import run_node
 from fingerps_recon.normal_map import normal_map_rgb
 from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
 from fingerps_recon.pipeline import (
     Model,
+    PreparedCalibration,
     Projection,
     Reconstruction,
     ReconstructionOptions,
-    reconstruct,
+    prepare_calibration,
+    reconstruct_prepared,
 )
 from fingerps_recon.point_cloud_conversion import points_to_cloud
 
@@ -46,9 +53,10 @@ class ReconNode(Node):
         self._checks.add("model", one_of(*(m.value for m in Model)))
         self._checks.add("projection", one_of(*(m.value for m in Projection)))
         p = self.declare_parameter
-        p("model", Model.LAMBERT.value, descriptor(
-            "Reflectance model of the normals: lambert (Lambertian photometric stereo) or hk "
-            "(the paper's simplified Hanrahan-Krueger skin model, initialised from lambert)"))
+        p("model", Model.HK.value, descriptor(
+            "Reflectance model of the normals: hk (the paper's simplified Hanrahan-Krueger "
+            "skin model, initialised from lambert) or lambert (Lambertian photometric "
+            "stereo)"))
         p("projection", Projection.PERSPECTIVE.value, descriptor(
             "Camera model of the views, the integration and the points: perspective (from "
             "the burst's camera_info) or orthographic"))
@@ -87,6 +95,8 @@ class ReconNode(Node):
         self._lights: LightCalibration | None = None
         self._flat: FlatField | None = None
         self._flat_maps: np.ndarray | None = None
+        self._prepared = PreparedCalibrations()
+        self._ready = False
 
         self.create_subscription(Burst, topics.BURST, self._on_burst, qos.BURST_QOS)
         self.create_subscription(LightCalibration, topics.LIGHT_CALIBRATION, self._on_lights,
@@ -129,7 +139,15 @@ class ReconNode(Node):
             self._cv.notify()
 
     # ------------------------------------------------------------------ work
+    def _warm_up(self) -> None:
+        """Compile or load the kernels before the first burst (bursts wait meanwhile)."""
+        self.get_logger().info("warming up the reconstruction kernels")
+        warm = warm_up_kernels()
+        self._ready = True
+        self.get_logger().info(f"reconstruction ready: {warm.summary}")
+
     def _work(self) -> None:
+        self._warm_up()
         while True:
             with self._cv:
                 while not self._queue and not self._stop:
@@ -170,7 +188,8 @@ class ReconNode(Node):
         maps = self._flat_maps
         made = reconstruct_burst(
             burst, lights, maps, options=self._options(),
-            mono16_full_scale=float(self.get_parameter("mono16_full_scale").value))
+            mono16_full_scale=float(self.get_parameter("mono16_full_scale").value),
+            prepared=self._prepared)
         if maps is not None and not made.flat_field_used:
             self.get_logger().warning(
                 f"flat field {maps.shape} does not fit the images {made.images.shape}; not "
@@ -195,13 +214,17 @@ class ReconNode(Node):
     def _publish_diagnostics(self) -> None:
         status = DiagnosticStatus(name=f"{self.get_name()}: reconstruction")
         status.level = DiagnosticStatus.OK if not self._last_error else DiagnosticStatus.WARN
-        status.message = "ok" if not self._last_error else self._last_error
-        status.values = [KeyValue(key="bursts_done", value=str(self._done)),
+        status.message = self._last_error or (
+            "ok" if self._ready else "warming up: compiling or loading the solver kernels")
+        status.values = [KeyValue(key="ready", value=str(self._ready)),
+                         KeyValue(key="bursts_done", value=str(self._done)),
                          KeyValue(key="bursts_failed", value=str(self._failed)),
                          KeyValue(key="bursts_incomplete", value=str(self._incomplete)),
                          KeyValue(key="last_error", value=self._last_error),
                          KeyValue(key="bursts_dropped", value=str(self._dropped)),
-                         KeyValue(key="calibrated", value=str(self._lights is not None))]
+                         KeyValue(key="calibrated", value=str(self._lights is not None)),
+                         KeyValue(key="calibrations_prepared",
+                                  value=str(self._prepared.count))]
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(array)
@@ -227,28 +250,61 @@ class BurstReconstruction:
     flat_field_used: bool
 
 
+class PreparedCalibrations:
+    """The calibration prepared for the bursts' camera (``prepare_calibration``): kept while
+    the light calibration, the flat field, the camera matrix, the image size, the working
+    distance and the projection stay the same; prepared again when one changes."""
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._held: tuple = ()  # the key's objects, kept alive so their ids stay theirs
+        self._prepared: PreparedCalibration | None = None
+        self.count = 0  # calibrations prepared so far
+        self.seconds = 0.0  # time the last preparation took
+
+    def get(self, lights: LightCalibration, flat_maps: np.ndarray | None,
+            camera_matrix: np.ndarray, shape: tuple[int, int],
+            options: ReconstructionOptions) -> PreparedCalibration:
+        """The prepared calibration for these inputs, prepared now if they changed."""
+        key = (id(lights), id(flat_maps), camera_matrix.tobytes(), tuple(shape),
+               options.working_distance_m, options.projection)
+        if key != self._key or self._prepared is None:
+            start = time.perf_counter()
+            count = len(lights.directions)
+            intensities = np.asarray(lights.relative_intensities, dtype=np.float64)
+            directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
+            leds = np.array([[p.x, p.y, p.z] for p in lights.led_positions])
+            self._prepared = prepare_calibration(
+                optical_to_ps(directions), camera_matrix=camera_matrix, shape=shape,
+                intensities=intensities if intensities.size == count else None,
+                portions=flat_maps,
+                led_positions_optical=leds if len(leds) == count else None,
+                options=options)
+            self._key, self._held = key, (lights, flat_maps)
+            self.count += 1
+            self.seconds = time.perf_counter() - start
+        return self._prepared
+
+
 def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndarray | None,
-                      *, options: ReconstructionOptions,
-                      mono16_full_scale: float = 4095.0) -> BurstReconstruction:
+                      *, options: ReconstructionOptions, mono16_full_scale: float = 4095.0,
+                      prepared: PreparedCalibrations | None = None) -> BurstReconstruction:
     """Reconstruct a Burst message with a light calibration and flat-field maps (K, H, W)
-    (None, or maps of another shape: not used); raises ``FingerpsReconError``."""
+    (None, or maps of another shape: not used), the calibration prepared by ``prepared``
+    (kept there for the next burst) or afresh; raises ``FingerpsReconError``."""
     images, encoding = _burst_images(burst, len(lights.directions))
     full_scale = mono16_full_scale if encoding == "mono16" else _FULL_SCALE.get(encoding, 255.0)
-    directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
-    intensities = np.asarray(lights.relative_intensities, dtype=np.float64)
     maps = flat_maps if flat_maps is not None and flat_maps.shape == images.shape else None
     dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
     k_matrix = np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3)
     if k_matrix[0, 0] <= 0:
         raise FingerpsReconError("the burst's camera_info has no intrinsics (fx <= 0)")
-    leds = np.array([[p.x, p.y, p.z] for p in lights.led_positions])
-    result = reconstruct(
-        images, lights_ps=optical_to_ps(directions), camera_matrix=k_matrix,
-        full_scale=full_scale,
-        intensities=intensities if intensities.size == len(images) else None,
-        portions=maps, dark=dark,
-        led_positions_optical=leds if len(leds) == len(images) else None,
-        options=options)
+    start = time.perf_counter()
+    calibration = (prepared or PreparedCalibrations()).get(
+        lights, maps, k_matrix, images.shape[1:], options)
+    result = reconstruct_prepared(images, calibration, full_scale=full_scale, dark=dark,
+                                  options=options)
+    result.timings_ms["total"] = (time.perf_counter() - start) * 1e3
     return BurstReconstruction(result, images, dark, full_scale, maps is not None)
 
 

@@ -65,7 +65,11 @@ from fingerps_recon.quality import (
     judge_quality,
     quality_figures,
 )
-from fingerps_recon.recon_node import BurstReconstruction, reconstruct_burst
+from fingerps_recon.recon_node import (
+    BurstReconstruction,
+    PreparedCalibrations,
+    reconstruct_burst,
+)
 
 SCAN = "scan"                       # fingerps_msgs/action/Scan
 SCAN_REJECTIONS = "scan/rejections"  # std_msgs/String: why a goal was rejected
@@ -124,6 +128,7 @@ class ScanNode(Node):
         self._busy = False
         self._lights: LightCalibration | None = None
         self._flat_maps: np.ndarray | None = None
+        self._prepared = PreparedCalibrations()
         self._last_verdict: QualityVerdict | None = None
         self._counts = {"goals": 0, "rejected_goals": 0, "succeeded": 0, "aborted": 0,
                         "cancelled": 0, "bursts_rejected_motion": 0}
@@ -404,7 +409,8 @@ class ScanNode(Node):
                 raise ScanAbortedError("no light calibration: calibrate the lights first")
             made = reconstruct_burst(
                 burst, lights, self._flat_maps, options=settings.options,
-                mono16_full_scale=float(self.get_parameter("mono16_full_scale").value))
+                mono16_full_scale=float(self.get_parameter("mono16_full_scale").value),
+                prepared=self._prepared)
             residual = made.result.residual
             figures = quality_figures(
                 made.images, mask=made.result.mask, normals_ps=made.result.normals_ps,
