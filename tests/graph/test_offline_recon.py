@@ -3,8 +3,9 @@
 Folders: a Lambertian sphere rendered analytically under known lights (8-bit grey with
 one-channel intensities; 16-bit colour with per-channel intensities and a coloured albedo,
 the DiLiGenT case), and the simulated rig's finger (``SimulatedRig``, default HK skin, noiseless,
-8 bit, no mask.png so the pipeline's finger mask is used). Each run is a subprocess of the
-installed script, as ``ros2 run fingerps_recon offline_recon`` would start it.
+8 bit, no mask.png so the pipeline's finger mask is used); and the colour sphere under 96
+lights, as many as every real DiLiGenT object has, with either model. Each run is a
+subprocess of the installed script, as ``ros2 run fingerps_recon offline_recon`` would start it.
 
 Measured: grey sphere mean angular error 0.076 deg (8-bit quantisation), colour sphere
 0.0002 deg (2.3 deg if light_intensities.txt is left out, so the per-channel rule is seen);
@@ -34,6 +35,7 @@ from fingerps_recon.ply import read_ply
 
 SPHERE_MAX_MEAN_DEG = 1.0   # measured 0.076 (8-bit grey), 0.0002 (16-bit colour)
 FINGER_MAX_MEAN_DEG = 5.0   # measured 3.15
+SPHERE_96_MAX_MEAN_DEG = 0.01  # 96 lights, 16-bit colour: measured 0.0001 (both models)
 OUTPUTS = ("normals.npy", "albedo.npy", "depth.npy", "normal_map.png", "cloud.ply",
            "report.json")
 
@@ -201,6 +203,26 @@ def test_the_channel_intensities_matter(offline_recon: Callable, tmp_path: Path)
     (tmp_path / "sphere/light_intensities.txt").unlink()
     _ok(offline_recon(tmp_path / "sphere", "--out", tmp_path / "out"))
     assert _mean_error(np.load(tmp_path / "out/normals.npy"), truth, mask) > 1.0
+
+
+@pytest.mark.parametrize("model", ["lambert", "hk"])
+def test_96_lights_as_every_diligent_object(offline_recon: Callable, tmp_path: Path,
+                                            model: str) -> None:
+    # Real DiLiGenT objects have 96 lights (more than the 62 once supported): a 16-bit colour
+    # sphere under 96 lights, reconstructed with either model.
+    truth, mask, _ = _write_sphere(tmp_path / "sphere", colour16=True, count=96)
+    out = tmp_path / "out"
+    run = _ok(offline_recon(tmp_path / "sphere", "--out", out, "--model", model))
+    normals = np.load(out / "normals.npy")
+    valid = np.linalg.norm(normals, axis=2) > 0
+    assert valid.sum() == mask.sum() and not np.any(valid & ~mask)
+    error = _mean_error(normals, truth, mask)
+    print(f"\n96-light sphere, {model}: mean angular error {error:.4f} deg")
+    assert error < SPHERE_96_MAX_MEAN_DEG
+    report = json.loads((out / "report.json").read_text())
+    assert (report["images"], report["model"]) == (96, model)
+    assert report["normal_gt"]["mean_deg"] == pytest.approx(error, abs=1e-4)
+    assert "offline_recon: 96 images 140x120 16-bit" in run.stdout
 
 
 # ----------------------------------------------------------------------------- rig finger

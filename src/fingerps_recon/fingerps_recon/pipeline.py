@@ -274,8 +274,7 @@ def reconstruct_prepared(
     timings["lambert"] = (time.perf_counter() - t1) * 1e3
     valid = lam.valid & mask
     usable = (stack > shadow_level) & (stack < limit)
-    residual = _lambert_residual(stack, lights, light_power, lam.normals, lam.albedo,
-                                 valid=valid, usable=usable)
+    residual = lam.relative_misfit()  # gathered by the solve over the valid pixels' usable values
     normals, albedo, hk_scale = lam.normals, lam.albedo, None
     if options.model is Model.HK:
         from fingerps_recon.hk_solver import solve_hk
@@ -303,31 +302,6 @@ def reconstruct_prepared(
         normals_ps=normals, enhanced_ps=enhanced, albedo=albedo, mask=valid, depth_m=depth,
         height_m=height, points_optical=points, point_albedo=albedo.reshape(-1)[index],
         hk_scale=hk_scale, residual=residual, timings_ms=timings)
-
-
-def _lambert_residual(stack: np.ndarray, lights: np.ndarray, power: np.ndarray | None,
-                      normals: np.ndarray, albedo: np.ndarray, *, valid: np.ndarray,
-                      usable: np.ndarray) -> float | None:
-    """rms(I - power * rho * max(0, n . l)) / mean(I) over valid pixels' usable values
-    (Eq. 3's misfit, relative); None without valid pixels. ``lights`` (K, 3) or (K, H, W, 3);
-    ``power`` None, (K,) or (K, H, W)."""
-    if not valid.any():
-        return None
-    rows, cols = np.nonzero(valid)
-    n = normals[rows, cols].astype(np.float64)                      # (P, 3)
-    lgt = lights[:, rows, cols] if lights.ndim == 4 else lights[:, None, :]
-    predicted = albedo[rows, cols][None, :] * np.maximum(np.sum(n[None] * lgt, axis=2), 0.0)
-    if power is not None:
-        p = np.asarray(power, dtype=np.float64)
-        predicted = predicted * (p[:, rows, cols] if p.ndim == 3 else p[:, None])
-    observed = stack[:, rows, cols]
-    use = usable[:, rows, cols]
-    if not use.any():
-        return None
-    mean = float(observed[use].mean())
-    if mean <= 0:
-        return None
-    return float(np.sqrt(np.mean((observed[use] - predicted[use]) ** 2)) / mean)
 
 
 def _irradiance(portions: np.ndarray, intensities: np.ndarray | None,
