@@ -84,6 +84,15 @@ from fingerps_recon.normal_transform import enhance_ridges
 
 RUNS = 15
 MIN_RUNS = 7
+KERNEL_ITERATIONS = 10
+# Floating-point operations of one HK LM iteration, counted in fingerps_recon/hk_kernel.py
+# (add, mul, fma = 2, div, sqrt, min/max each 1; loads, stores, selects not counted): per
+# measurement (pixel x light) in _model_sums: c_i 5, lighting selects 2, 1/c_i 1, q 2, the
+# exponent 2 and exp() 14, e p S 3, e c_i 1, A P 1, u 2, r 3, w_q 3, capped inverses 2,
+# df/dc_r 4, df/dc_i 6, j1, j2 10, the 15 sums 30: 91. Per pixel: the candidate's step and
+# normal 33, _view_terms 14, the choice 8, _keep_better 30, _steps 70, _step_parts 14: 169.
+FLOPS_PER_MEASUREMENT = 91
+FLOPS_PER_PIXEL = 169
 WORKING_DISTANCE_M = 0.09
 SHADOW_FRACTION = 0.02
 MASK_THRESHOLD = 0.15
@@ -114,6 +123,32 @@ class SpeedReport:
     timings: tuple[StageTiming, ...]
     accuracy_um: dict[str, float]
     notes: tuple[str, ...]
+    kernel: KernelRate | None = None
+
+
+@dataclass(frozen=True)
+class KernelRate:
+    """How far one HK Levenberg–Marquardt iteration is from the machine's peak."""
+
+    ms_per_iteration: float
+    pixels: int
+    lights: int
+    flops_per_iteration: float   # counted in the kernel's source (FLOPS_PER_* below)
+    gflops: float                # achieved
+    peak_gflops: float           # the cores' float32 peak (peak_gflops())
+    peak_description: str
+
+    @property
+    def fraction_of_peak(self) -> float:
+        return self.gflops / self.peak_gflops
+
+    @property
+    def line(self) -> str:
+        return (f"HK kernel: {self.ms_per_iteration:.2f} ms per LM iteration for "
+                f"{self.pixels} px x {self.lights} lights, "
+                f"{self.flops_per_iteration / self.pixels:.0f} flop per pixel and iteration "
+                f"-> {self.gflops:.1f} GFLOP/s = {100 * self.fraction_of_peak:.1f} % of the "
+                f"cores' float32 peak {self.peak_gflops:.0f} GFLOP/s ({self.peak_description})")
 
 
 @dataclass(frozen=True)
@@ -145,8 +180,39 @@ def _burst(rig: SimulatedRig) -> _Burst:
 from fingerps_recon.pipeline import (  # noqa: E402
     Model,
     ReconstructionOptions,
+    prepare_calibration,
     reconstruct,
 )
+
+
+def peak_gflops() -> tuple[float, str]:
+    """The cores' float32 peak: cores x SIMD lanes (16 with AVX-512, 8 with AVX2) x 2 FMA
+    units x 2 flop x the nominal clock (``/proc/cpuinfo``), and how it was derived."""
+    flags, mhz = set(), 0.0
+    try:
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                if line.startswith("flags") and not flags:
+                    flags = set(line.split(":", 1)[1].split())
+                elif line.startswith("cpu MHz") and not mhz:
+                    mhz = float(line.split(":", 1)[1])
+    except OSError:
+        pass
+    lanes = 16 if "avx512f" in flags else 8 if "avx2" in flags else 4
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    ghz = mhz / 1e3 if mhz else float("nan")
+    return (cores * lanes * 2 * 2 * ghz,
+            f"{cores} cores x {lanes} float32 lanes x 2 FMA x 2 flop x {ghz:.2f} GHz")
+
+
+def kernel_rate(ms_per_iteration: float, pixels: int, lights: int) -> KernelRate:
+    """The HK kernel's achieved rate from the time of one iteration (see FLOPS_PER_*)."""
+    flops = pixels * (lights * FLOPS_PER_MEASUREMENT + FLOPS_PER_PIXEL)
+    peak, description = peak_gflops()
+    return KernelRate(ms_per_iteration=ms_per_iteration, pixels=pixels, lights=lights,
+                      flops_per_iteration=float(flops),
+                      gflops=flops / (ms_per_iteration * 1e-3) / 1e9, peak_gflops=peak,
+                      peak_description=description)
 
 
 def _time(fn: Callable[[], object], repeats: int) -> tuple[object, tuple[float, ...]]:
@@ -277,10 +343,46 @@ def measure(repeats: int = RUNS) -> SpeedReport:
     stage("pipeline_lambert", lambda: pipeline(Model.LAMBERT))
     stage("pipeline_hk", lambda: pipeline(Model.HK))
 
+    # The HK kernel's rate: solve_hk with the pipeline's near-light inputs, 0 and
+    # KERNEL_ITERATIONS iterations (tol 0: every iteration is done); the difference is the
+    # cost of the iterations alone (the gathering and the start excluded).
+    if solve_hk is not None:
+        options = ReconstructionOptions(model=Model.HK)
+        prepared = prepare_calibration(
+            burst.lights_ps, camera_matrix=k_mat, shape=burst.images.shape[1:],
+            intensities=burst.intensities, portions=burst.portions,
+            led_positions_optical=rig.led_positions_optical, options=options)
+        stack = burst.images.astype(np.float32)
+        usable_near = (stack > shadow_level) & (stack < saturation_level)
+        lam_near = solve_lambertian(stack, prepared.lights, intensities=prepared.light_power,
+                                    mask=mask, shadow_level=shadow_level,
+                                    saturation_level=saturation_level)
+
+        def hk_iterations(count: int) -> object:
+            return solve_hk(stack, prepared.lights, mask=lam_near.valid & mask,
+                            init_normals=lam_near.normals, init_albedo=lam_near.albedo,
+                            views=prepared.views, intensities=prepared.light_power,
+                            usable=usable_near, iterations=count, tol=0.0)
+
+        stage("hk_kernel_0_iterations", lambda: hk_iterations(0))
+        solved = stage(f"hk_kernel_{KERNEL_ITERATIONS}_iterations",
+                       lambda: hk_iterations(KERNEL_ITERATIONS))
+        kernel_pixels = int(solved.valid.sum())
+
+    if solve_hk is not None:
+        medians = {t.stage: t.median for t in timings}
+        per_iteration_ms = (medians[f"hk_kernel_{KERNEL_ITERATIONS}_iterations"]
+                            - medians["hk_kernel_0_iterations"]) / KERNEL_ITERATIONS
+        rate = kernel_rate(per_iteration_ms, kernel_pixels, burst.images.shape[0])
+        notes.append(rate.line)
+        kernel = rate
+    else:
+        kernel = None
     accuracy = _accuracy(truth, valid, depth_fast, depth_exact, depth_persp, depth_persp_exact,
                          normals=truth.normals_ps, camera_matrix=k_mat,
                          pixel_size_m=pixel_size_m)
-    return SpeedReport(timings=tuple(timings), accuracy_um=accuracy, notes=tuple(notes))
+    return SpeedReport(timings=tuple(timings), accuracy_um=accuracy, notes=tuple(notes),
+                       kernel=kernel)
 
 
 def _accuracy(truth, valid, depth_fast, depth_exact, depth_persp, depth_persp_exact, *,
@@ -332,6 +434,13 @@ def run(repeats: int = RUNS) -> dict[str, float]:
     report = measure(repeats)
     figures = {f"recon.ms.{t.stage}": t.median for t in report.timings}
     figures.update({f"recon.um.{name}": value for name, value in report.accuracy_um.items()})
+    if report.kernel is not None:
+        figures["recon.hk_kernel.ms_per_iteration"] = report.kernel.ms_per_iteration
+        figures["recon.hk_kernel.flop_per_pixel_iteration"] = (
+            report.kernel.flops_per_iteration / report.kernel.pixels)
+        figures["recon.hk_kernel.gflops"] = report.kernel.gflops
+        figures["recon.hk_kernel.peak_gflops"] = report.kernel.peak_gflops
+        figures["recon.hk_kernel.fraction_of_peak"] = report.kernel.fraction_of_peak
     return figures
 
 
