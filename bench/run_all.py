@@ -18,10 +18,11 @@ import bench_driver
 import bench_driver_publish
 import bench_e2e
 import bench_recon_accuracy
+import bench_recon_publish
 import bench_recon_speed
 
-BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_accuracy,
-              bench_calib, bench_e2e)
+BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_publish,
+              bench_recon_accuracy, bench_calib, bench_e2e)
 
 
 def main(argv: list[str] | None = None) -> int:
