@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from fingerps_recon import hk_solver
+from fingerps_recon import hk_solver, kernel_threads
 from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.hk_model import PhaseConvention, SkinParams, hk_reflectance
@@ -290,7 +290,7 @@ def test_blocks_and_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyP
     monkeypatch.setattr(hk_solver, "_BLOCK", 256)
     results = []
     for threads in (1, 2):
-        monkeypatch.setattr(hk_solver, "_MAX_THREADS", threads)
+        monkeypatch.setattr(kernel_threads, "_LIMIT", [threads])
         results.append(_solve(images, mask, iterations=6, tol=0.0, backend="numpy")[0])
     one, two = results
     np.testing.assert_array_equal(one.normals, two.normals)
@@ -311,7 +311,7 @@ def test_numba_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch)
     images = images + 0.01 * rng.standard_normal(images.shape)
     results = []
     for threads in (1, 2):
-        monkeypatch.setattr(hk_solver, "_MAX_THREADS", threads)
+        monkeypatch.setattr(kernel_threads, "_LIMIT", [threads])
         results.append(_solve(images, mask, iterations=6, tol=0.0, backend="numba")[0])
     one, two = results
     assert mask.sum() > 4 * hk_solver._kernel_module("numba").CHUNK

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fingerps_recon import kernel_threads
 from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.lambertian import LambertianResult, lambertian_shading, solve_lambertian
@@ -411,7 +412,6 @@ def test_integer_images_are_read_as_they_are() -> None:
 
 
 def test_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
-    from fingerps_recon import lambertian_kernel
 
     normals, mask, lights, irradiance = _near_lights()
     images = (irradiance * lambertian_shading(normals, lights, rho=0.5)).astype(np.float32)
@@ -419,7 +419,7 @@ def test_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> No
         np.float32)
     results = []
     for threads in (1, 2):
-        monkeypatch.setattr(lambertian_kernel, "MAX_THREADS", threads)
+        monkeypatch.setattr(kernel_threads, "_LIMIT", [threads])
         results.append(solve_lambertian(images, lights, intensities=irradiance, mask=mask))
     one, two = results
     for name in ("normals", "albedo", "valid", "used_lights"):

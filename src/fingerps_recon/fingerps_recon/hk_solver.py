@@ -52,9 +52,9 @@ limits how closely a pixel's minimum is approached: its cost stays within about 
 
 - "numpy" (the reference): the per-measurement work (about 60 passes over (K, N) arrays per
   iteration) in blocks of ``_BLOCK`` pixels with per-thread workspaces reused from block to
-  block, in up to ``_MAX_THREADS`` threads.
+  block, in up to :func:`fingerps_recon.kernel_threads.thread_limit` threads.
 - "numba" (:mod:`fingerps_recon.hk_kernel`): each pass one compiled loop over chunks of
-  pixels (vectorised, in up to ``_MAX_THREADS`` numba threads), the gathering of the
+  pixels (vectorised, in up to that many numba threads), the gathering of the
   masked pixels and the result images too. On the rig finger (~172 000 pixels x 7 lights,
   two cores) 3-4x faster than numpy; the two agree to float32 rounding (normals within
   1e-4 degrees, A within 1e-7). The first call in a process compiles the kernels or loads
@@ -65,11 +65,9 @@ from __future__ import annotations
 
 import importlib
 import math
-import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from types import ModuleType
@@ -80,6 +78,7 @@ import numpy as np
 
 from .errors import FingerpsReconError
 from .hk_model import PhaseConvention, SkinParams, henyey_greenstein
+from .kernel_threads import numba_threads, thread_limit
 
 # 1/c_i and 1/c_r in the derivatives are capped at 1 / _DERIVATIVE_FLOOR.
 _DERIVATIVE_FLOOR = 1e-3
@@ -99,8 +98,6 @@ _N_SUMS = 15
 # Pixels per block of the evaluation (workspace buffers (K, _BLOCK) float32 stay in cache).
 _BLOCK = 16384
 _T = TypeVar("_T")
-# Worker threads of the evaluation (at most this many, at most the number of CPUs).
-_MAX_THREADS = 2
 # solve_hk's backends, and the outcome of importing the numba kernels (module or None, and
 # the reason it failed), tried once per process.
 _BACKENDS = ("auto", "numba", "numpy")
@@ -292,7 +289,7 @@ def solve_hk(
     kernel = _kernel_module(backend)
     fit, iterations, tol = scale is None, int(iterations), float(tol)
     if kernel is not None:
-        with _numba_threads():
+        with numba_threads():
             return _solve_numba(inputs, kernel, scale=scale, fit=fit, iterations=iterations,
                                 tol=tol)
     columns, pix, (h, w) = _prepare(inputs)
@@ -356,22 +353,6 @@ def _solve_numba(
         valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w), iterations=done,
         cost_history=tuple(history),
     )
-
-
-@contextmanager
-def _numba_threads() -> Iterator[None]:
-    """numba's threads for this thread: at most ``_MAX_THREADS``, chunks of pixels dealt out
-    as threads free up (another process may hold a core); restored on exit."""
-    import numba
-
-    saved = (numba.get_num_threads(), numba.get_parallel_chunksize())
-    numba.set_num_threads(max(1, min(_MAX_THREADS, numba.config.NUMBA_NUM_THREADS)))
-    numba.set_parallel_chunksize(1)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(saved[0])
-        numba.set_parallel_chunksize(saved[1])
 
 
 def _float_array(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -632,7 +613,7 @@ class _NumpyPasses:
 
 class _NumbaPasses:
     """The passes of the numba backend (:mod:`fingerps_recon.hk_kernel`): one compiled,
-    vectorised loop over the pixels per pass, in numba's threads (:func:`_numba_threads`),
+    vectorised loop over the pixels per pass, in numba's threads (``numba_threads``),
     the global sums added up per chunk of pixels in a fixed order. ``data``: the gathered
     (values, usable, lights, views, intensity, phase) (:func:`_gather_numba`); ``n`` (3, N)
     and ``rho`` (N,) float32 the initial state (updated in place)."""
@@ -908,7 +889,7 @@ class _Evaluator:
     def __init__(self, data: _Data) -> None:
         self.data = data
         k = data.values.shape[1]
-        self.workers = max(1, min(_MAX_THREADS, os.cpu_count() or 1, data.blocks))
+        self.workers = max(1, min(thread_limit(), data.blocks))
         self._spaces = [
             {name: np.empty((k, _BLOCK), np.float32) for name in self._BUFFERS}
             | {"lit": np.empty((k, _BLOCK), bool)}

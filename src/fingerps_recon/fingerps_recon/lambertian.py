@@ -23,6 +23,7 @@ import numpy as np
 
 from . import lambertian_kernel
 from .errors import FingerpsReconError
+from .kernel_threads import numba_threads
 
 # A pixel's (scaled) light directions are degenerate (e.g. coplanar) where
 # det(A) <= this * (trace(A) / 3)**3, i.e. for A's eigenvalues (l, l, e) where e / l <= 3e-6
@@ -210,7 +211,7 @@ def solve_lambertian(
         lo, hi = _levels(values.dtype, shadow_level, saturation_level)
         chunks = (box[1] - box[0]) * -(-(box[3] - box[2]) // lambertian_kernel.CHUNK)
         parts = np.zeros((chunks, 3))
-        with lambertian_kernel.limited_threads():
+        with numba_threads():
             lambertian_kernel.solve(
                 values, _kernel_lights(lgt), _kernel_intensities(e), m,
                 np.array(box, dtype=np.int64), lo, hi, np.float32(_MIN_RELATIVE_DETERMINANT),

@@ -34,8 +34,6 @@ process (a warning says so). Each combination of input dtypes is compiled once o
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import numba
 import numpy as np
@@ -44,8 +42,6 @@ from numba import prange
 # Pixels per chunk (a chunk's nine float32 sums, its scratch and its pixels' inputs stay in
 # the core's L1/L2 cache, whatever the number of lights).
 CHUNK = 256
-# At most this many numba threads for a solve (the rig's computer has two cores).
-MAX_THREADS = 2
 
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
 _U = numba.uint64
@@ -84,22 +80,6 @@ def _inline(fn):
     """A part of the kernel inlined into it (numba IR): no call per chunk, and scalar
     arithmetic that keeps the loops vectorisable."""
     return _compile(fn, inline="always")
-
-
-@contextmanager
-def limited_threads(limit: int | None = None) -> Iterator[None]:
-    """numba's threads for this thread: at most ``limit`` (default ``MAX_THREADS``), chunks
-    dealt out one at a time as threads free up (another process may hold a core); restored
-    on exit."""
-    saved = (numba.get_num_threads(), numba.get_parallel_chunksize())
-    limit = MAX_THREADS if limit is None else limit
-    numba.set_num_threads(max(1, min(limit, numba.config.NUMBA_NUM_THREADS)))
-    numba.set_parallel_chunksize(1)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(saved[0])
-        numba.set_parallel_chunksize(saved[1])
 
 
 @_inline
