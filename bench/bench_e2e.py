@@ -395,6 +395,7 @@ class Window:
     lost: int                    # published bursts whose cloud never arrived
     latency_ms: tuple[float, ...]
     recon_counts: dict[str, int]  # recon's diagnostics counters over the window (about)
+    recon_stages: dict[str, str] = field(default_factory=dict)  # its stage medians, ms
 
     @property
     def published_per_s(self) -> float:
@@ -411,7 +412,10 @@ class Window:
         return (f"rate {self.rate:5.1f}/s for {self.seconds:.0f} s: published "
                 f"{self.published_per_s:5.2f}/s, clouds {self.bursts_per_s:5.2f}/s, lost "
                 f"{self.lost}/{self.published}, {lat}; recon's diagnostics: "
-                + ", ".join(f"{k} {v}" for k, v in self.recon_counts.items()))
+                + ", ".join(f"{k} {v}" for k, v in self.recon_counts.items())
+                + ("; recon's stage medians (ms): " + ", ".join(
+                    f"{k.removesuffix('_ms')} {v}" for k, v in self.recon_stages.items())
+                   if self.recon_stages else ""))
 
 
 def measure(observer: Observer, graph: Graph, rate: float, seconds: float) -> Window:
@@ -446,8 +450,11 @@ def measure(observer: Observer, graph: Graph, rate: float, seconds: float) -> Wi
         received = sum(1 for t in seen.clouds.values() if t0 <= t < t1)
     counts_after = observer.recon_counts()
     counts = {k: counts_after[k] - counts_before.get(k, 0) for k in counts_after}
+    with seen.lock:
+        values = seen.diagnostics.get("recon: reconstruction", {})
+        stages = {k: v for k, v in values.items() if k.endswith("_ms")}
     return Window(rate, (t1 - t0) / 1e9, len(window), received, len(window) - len(done),
-                  tuple(latency), counts)
+                  tuple(latency), counts, stages)
 
 
 # ---------------------------------------------------------------------------- the kiosk

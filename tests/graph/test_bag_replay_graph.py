@@ -28,7 +28,7 @@ from fingerps_recon.bag_reader import SessionBagReader
 from fingerps_recon.frames import optical_to_ps, ps_to_optical
 from fingerps_recon.image_conversion import array_to_image, image_to_array
 from fingerps_recon.message_definition import MessageDefinition, load_message_definition
-from fingerps_recon.pipeline import ReconstructionOptions, reconstruct
+from fingerps_recon.pipeline import Model, ReconstructionOptions, reconstruct
 from fingerps_recon.session_bag import QosProfileFields, SessionBagWriter, qos_profiles_yaml
 
 NS = "/" + topics.NAMESPACE
@@ -93,7 +93,8 @@ def _direct_normals(lights: LightCalibration, burst: Burst) -> np.ndarray:
         images, lights_ps=optical_to_ps(directions),
         camera_matrix=np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3),
         full_scale=255.0, intensities=intensities, portions=None, dark=None,
-        led_positions_optical=None, options=ReconstructionOptions(enhance=True))
+        led_positions_optical=None,
+        options=ReconstructionOptions(model=Model.HK, enhance=True))
     return ps_to_optical(result.normals_ps).astype(np.float32)
 
 

@@ -196,6 +196,9 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
                "diagnostics counting the second burst", timeout=5.0)
     last = [v for v in _diagnostic_values(diagnostics) if int(v.get("bursts_done", 0)) >= 2]
     assert last[-1]["calibrations_prepared"] == "1", last[-1]
+    # Where the time went (medians over the recent bursts, ms): all stages reported.
+    assert 0 < float(last[-1]["reconstruction_ms"]) < float(last[-1]["capture_to_published_ms"])
+    assert float(last[-1]["publish_ms"]) > 0 and float(last[-1]["queue_wait_ms"]) >= 0
 
     recon.send_signal(signal.SIGINT)
     assert recon.wait() == 0, recon.output

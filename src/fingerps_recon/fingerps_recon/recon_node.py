@@ -24,7 +24,8 @@ from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon import qos, topics
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.frames import optical_to_ps, ps_to_optical
-from fingerps_recon.image_conversion import array_to_image, image_to_array
+from fingerps_recon.image_conversion import array_to_image, image_to_array, images_to_array
+from fingerps_recon.kernel_threads import available_cores, set_thread_limit, thread_limit
 from fingerps_recon.kernel_warm_up import warm_up_kernels
 from fingerps_recon.node_runner import run_node
 from fingerps_recon.normal_map import normal_map_rgb
@@ -63,6 +64,10 @@ class ReconNode(Node):
         p("hk_iterations", 5, descriptor(
             "Levenberg-Marquardt iterations of the HK solver", min_value=1, max_value=100,
             integer=True))
+        p("threads", 0, descriptor(
+            "Threads of the per-pixel solvers; 0 = every core. On a machine whose other cores "
+            "are busy (driver, recorder) fewer threads can finish a burst sooner",
+            min_value=0, max_value=256, integer=True))
         p("queue_depth", 2, descriptor(
             "Bursts waiting for reconstruction; the oldest is dropped beyond this",
             min_value=1, max_value=100, integer=True, read_only=True))
@@ -83,8 +88,13 @@ class ReconNode(Node):
             max_value=65535.0))
 
         self._checks.refuse_unknown_overrides(self)
+        set_thread_limit(int(self.get_parameter("threads").value))
+        self.add_post_set_parameters_callback(self._on_threads)
 
-        self._queue: deque[Burst] = deque(maxlen=int(self.get_parameter("queue_depth").value))
+        # (burst, arrival time ns) waiting for the worker
+        self._queue: deque[tuple[Burst, int]] = deque(
+            maxlen=int(self.get_parameter("queue_depth").value))
+        self._stages = StageTimes()
         self._cv = threading.Condition()
         self._stop = False
         self._dropped = 0
@@ -114,6 +124,12 @@ class ReconNode(Node):
         self._worker.start()
         self.get_logger().info("recon ready: waiting for a light calibration and bursts")
 
+    def _on_threads(self, params: list) -> None:
+        """A new ``threads`` value applies from the next burst on."""
+        for param in params:
+            if param.name == "threads":
+                set_thread_limit(int(param.value))
+
     # ------------------------------------------------------------------ intake
     def _on_lights(self, msg: LightCalibration) -> None:
         self._lights = msg
@@ -135,7 +151,7 @@ class ReconNode(Node):
                 self.get_logger().warning(
                     f"reconstruction is behind: dropped the oldest burst ({self._dropped} so "
                     "far)", throttle_duration_sec=5.0)
-            self._queue.append(msg)
+            self._queue.append((msg, time.time_ns()))
             self._cv.notify()
 
     # ------------------------------------------------------------------ work
@@ -154,9 +170,9 @@ class ReconNode(Node):
                     self._cv.wait(timeout=0.5)
                 if self._stop:
                     return
-                burst = self._queue.popleft()
+                burst, arrival_ns = self._queue.popleft()
             try:
-                self._reconstruct(burst)
+                self._reconstruct(burst, arrival_ns)
                 self._done += 1
                 self._last_error = ""
             except IncompleteBurstError as exc:
@@ -179,7 +195,8 @@ class ReconNode(Node):
             w=int(g("w").value), k=float(g("k").value),
             working_distance_m=float(g("working_distance").value))
 
-    def _reconstruct(self, burst: Burst) -> None:
+    def _reconstruct(self, burst: Burst, arrival_ns: int) -> None:
+        start_ns = time.time_ns()
         lights = self._lights
         if lights is None:
             raise FingerpsReconError(
@@ -196,7 +213,7 @@ class ReconNode(Node):
                 "used", throttle_duration_sec=10.0)
         result = made.result
         header = burst.header
-        normals_optical = ps_to_optical(result.normals_ps).astype(np.float32)
+        normals_optical = ps_to_optical(result.normals_ps, dtype=np.float32)
         self._pub_normals.publish(array_to_image(normals_optical, encoding="32FC3",
                                                  header=header))
         shown = result.enhanced_ps if result.enhanced_ps is not None else result.normals_ps
@@ -206,6 +223,9 @@ class ReconNode(Node):
         self._pub_albedo.publish(array_to_image(result.albedo, encoding="32FC1", header=header))
         self._pub_points.publish(points_to_cloud(result.points_optical, result.point_albedo,
                                                  header=header))
+        stamp_ns = header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+        self._stages.add(stamp_ns, arrival_ns, start_ns, result.timings_ms["total"],
+                         time.time_ns())
         self.get_logger().info(
             f"burst {burst.burst_id}: {result.mask.sum()} px, "
             f"{result.timings_ms['total']:.0f} ms", throttle_duration_sec=2.0)
@@ -217,6 +237,8 @@ class ReconNode(Node):
         status.message = self._last_error or (
             "ok" if self._ready else "warming up: compiling or loading the solver kernels")
         status.values = [KeyValue(key="ready", value=str(self._ready)),
+                         KeyValue(key="threads", value=str(thread_limit())),
+                         KeyValue(key="cores", value=str(available_cores())),
                          KeyValue(key="bursts_done", value=str(self._done)),
                          KeyValue(key="bursts_failed", value=str(self._failed)),
                          KeyValue(key="bursts_incomplete", value=str(self._incomplete)),
@@ -224,7 +246,9 @@ class ReconNode(Node):
                          KeyValue(key="bursts_dropped", value=str(self._dropped)),
                          KeyValue(key="calibrated", value=str(self._lights is not None)),
                          KeyValue(key="calibrations_prepared",
-                                  value=str(self._prepared.count))]
+                                  value=str(self._prepared.count)),
+                         *(KeyValue(key=key, value=f"{value:.1f}")
+                           for key, value in self._stages.medians().items())]
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(array)
@@ -237,6 +261,32 @@ class ReconNode(Node):
         if self._worker.is_alive():
             self._worker.join(timeout=60.0)
         super().destroy_node()
+
+
+class StageTimes:
+    """Where the recent bursts' time went, from the burst's stamp (its capture) to the
+    outputs' publication: arrival here, waiting in the queue, reconstruction, publishing."""
+
+    KEYS = ("capture_to_arrival_ms", "queue_wait_ms", "reconstruction_ms", "publish_ms",
+            "capture_to_published_ms")
+
+    def __init__(self, keep: int = 50) -> None:
+        self._rows: deque[tuple[float, ...]] = deque(maxlen=keep)
+
+    def add(self, stamp_ns: int, arrival_ns: int, start_ns: int, compute_ms: float,
+            published_ns: int) -> None:
+        """One burst: its stamp, arrival, start of work, reconstruction time and the moment
+        its last output was published (wall-clock ns)."""
+        ms = 1e-6
+        work_ms = (published_ns - start_ns) * ms
+        self._rows.append(((arrival_ns - stamp_ns) * ms, (start_ns - arrival_ns) * ms,
+                           compute_ms, work_ms - compute_ms, (published_ns - stamp_ns) * ms))
+
+    def medians(self) -> dict[str, float]:
+        """Median of each stage over the recent bursts, ms (empty before the first)."""
+        if not self._rows:
+            return {}
+        return dict(zip(self.KEYS, np.median(np.array(self._rows), axis=0), strict=True))
 
 
 @dataclass(frozen=True)
@@ -330,7 +380,7 @@ def _burst_images(burst: Burst, led_count: int) -> tuple[np.ndarray, str]:
         raise FingerpsReconError(
             f"the burst mixes image encodings {sorted(encodings)} or sizes {sorted(sizes)}; "
             "every frame of a burst must come from one camera mode")
-    return np.stack([image_to_array(f.image) for f in frames]), encodings.pop()
+    return images_to_array([f.image for f in frames]), encodings.pop()
 
 
 def main(args: list[str] | None = None) -> int:

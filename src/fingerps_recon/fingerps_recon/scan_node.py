@@ -440,7 +440,7 @@ class ScanNode(Node):
         result.message = (f"burst {best.burst.burst_id}: "
                           + ("accepted" if verdict.accepted
                              else "rejected: " + "; ".join(verdict.reasons)))
-        result.normals = array_to_image(ps_to_optical(rec.normals_ps).astype(np.float32),
+        result.normals = array_to_image(ps_to_optical(rec.normals_ps, dtype=np.float32),
                                         encoding="32FC3", header=header)
         shown = rec.enhanced_ps if rec.enhanced_ps is not None else rec.normals_ps
         result.normal_map = array_to_image(normal_map_rgb(shown, mask=rec.mask),
