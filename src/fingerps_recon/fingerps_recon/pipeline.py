@@ -255,11 +255,14 @@ def reconstruct_prepared(
     lights, light_power = prepared.lights, prepared.light_power
     # Saturated pixels stay excluded after any correction: mark them above the new limit.
     limit = float(stack.max()) + 1.0
+    any_saturated = bool(saturated.any())
     if mask is None:
-        mask = finger_mask(np.where(saturated, 0.0, stack), threshold=options.mask_threshold)
+        mask = finger_mask(np.where(saturated, 0.0, stack) if any_saturated else stack,
+                           threshold=options.mask_threshold)
     elif np.shape(mask) != shape:
         raise FingerpsReconError(f"mask {np.shape(mask)} differs from the images {shape}")
-    np.copyto(stack, np.float32(limit), where=saturated)
+    if any_saturated:
+        np.copyto(stack, np.float32(limit), where=saturated)
     mask = np.asarray(mask, dtype=bool)
     if not mask.any():
         raise FingerpsReconError(
@@ -273,19 +276,19 @@ def reconstruct_prepared(
                            shadow_level=shadow_level, saturation_level=limit)
     timings["lambert"] = (time.perf_counter() - t1) * 1e3
     valid = lam.valid & mask
-    usable = (stack > shadow_level) & (stack < limit)
     residual = lam.relative_misfit()  # gathered by the solve over the valid pixels' usable values
     normals, albedo, hk_scale = lam.normals, lam.albedo, None
     if options.model is Model.HK:
         from fingerps_recon.hk_solver import solve_hk
 
         t1 = time.perf_counter()
+        usable = (stack > shadow_level) & (stack < limit)
         hk = solve_hk(stack, lights, mask=valid, init_normals=normals, init_albedo=albedo,
                       views=prepared.views, intensities=light_power, usable=usable,
                       iterations=options.hk_iterations)
         normals, albedo, valid, hk_scale = hk.normals, hk.albedo, hk.valid & valid, hk.scale
         timings["hk"] = (time.perf_counter() - t1) * 1e3
-    normals = np.where(valid[..., None], normals, 0.0).astype(np.float32)
+    # Both solvers give float32 normals and albedo that are zero where they are not valid.
 
     enhanced = None
     if options.enhance:
@@ -297,7 +300,6 @@ def reconstruct_prepared(
     depth, height, points, index = _surface(normals, valid, k_matrix, options)
     timings["depth"] = (time.perf_counter() - t2) * 1e3
     timings["total"] = (time.perf_counter() - t0) * 1e3
-    albedo = np.where(valid, albedo, 0.0).astype(np.float32)
     return Reconstruction(
         normals_ps=normals, enhanced_ps=enhanced, albedo=albedo, mask=valid, depth_m=depth,
         height_m=height, points_optical=points, point_albedo=albedo.reshape(-1)[index],
