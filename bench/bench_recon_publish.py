@@ -8,8 +8,7 @@ bench_recon_speed); its result is then converted and published N times (default 
 15, after one warm-up round) as ``recon_node._reconstruct`` does, in its order:
 
 - normals: ``ps_to_optical(normals_ps, dtype=np.float32)`` + ``array_to_image`` 32FC3
-  (3.9 MB; recon_node still calls ``ps_to_optical(...).astype(np.float32)``, the same bytes
-  in two more passes, until the change proposed in issue 10 item 4 lands);
+  (3.9 MB);
 - normal_map: ``normal_map_rgb`` of the enhanced normals + ``array_to_image`` rgb8 (1 MB);
 - depth, albedo: ``array_to_image`` 32FC1 (1.3 MB each);
 - points: ``points_to_cloud`` (x y z intensity float32, ~170 000 points, 2.8 MB).
@@ -42,7 +41,10 @@ on an idle machine but in ~3000 ms (median) at load 2.5-4: fragments are dropped
 recovered only at the writer's next heartbeat (Fast DDS's default period is 3 s; a profile
 with a 100 ms period gives ~130 ms). A Fast DDS profile with a 32 MB shared-memory segment
 (FASTRTPS_DEFAULT_PROFILES_FILE) gives 14-17 ms under the same load; UDP only, a 4 MB
-segment or FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA still stall.
+segment or FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA still stall. So every fingerps node uses
+``fingerps_recon/config/fastdds_large_data.xml`` (a 32 MB segment and a 100 ms heartbeat)
+unless the user has a profile of their own (``node_runner.use_large_data_profile``), and so
+does this benchmark's publisher; its subscriber keeps Fast DDS's defaults, as a viewer would.
 """
 
 from __future__ import annotations
@@ -245,7 +247,9 @@ def _publish_rounds(result: object, domain: int, repeats: int,
     from std_msgs.msg import Header, UInt32
 
     from fingerps_recon import qos, topics
+    from fingerps_recon.node_runner import use_large_data_profile
 
+    use_large_data_profile()  # as every fingerps node does (the subscriber keeps the default)
     context = Context()
     rclpy.init(context=context, domain_id=domain,
                signal_handler_options=SignalHandlerOptions.NO)

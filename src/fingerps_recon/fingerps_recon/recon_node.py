@@ -343,7 +343,7 @@ def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndar
     (None, or maps of another shape: not used), the calibration prepared by ``prepared``
     (kept there for the next burst) or afresh; raises ``FingerpsReconError``."""
     images, encoding = _burst_images(burst, len(lights.directions))
-    full_scale = mono16_full_scale if encoding == "mono16" else _FULL_SCALE.get(encoding, 255.0)
+    full_scale = mono16_full_scale if encoding == "mono16" else _FULL_SCALE[encoding]
     maps = flat_maps if flat_maps is not None and flat_maps.shape == images.shape else None
     dark = image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None
     k_matrix = np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3)
@@ -364,7 +364,7 @@ class IncompleteBurstError(FingerpsReconError):
 
 def _burst_images(burst: Burst, led_count: int) -> tuple[np.ndarray, str]:
     """The burst's images as (K, H, W) in LED order and their encoding; or an error saying
-    what is wrong (a missing LED, mixed sizes or encodings)."""
+    what is wrong (a missing LED, mixed sizes or encodings, colour images)."""
     frames = sorted(burst.frames, key=lambda f: f.led_index)
     indices = [f.led_index for f in frames]
     if indices != list(range(led_count)):
@@ -380,7 +380,12 @@ def _burst_images(burst: Burst, led_count: int) -> tuple[np.ndarray, str]:
         raise FingerpsReconError(
             f"the burst mixes image encodings {sorted(encodings)} or sizes {sorted(sizes)}; "
             "every frame of a burst must come from one camera mode")
-    return images_to_array([f.image for f in frames]), encodings.pop()
+    encoding = encodings.pop()
+    if encoding not in _FULL_SCALE:
+        raise FingerpsReconError(
+            f"the burst's images are {encoding}; photometric stereo needs one grey level per "
+            f"pixel: set the camera's pixel format to {' or '.join(_FULL_SCALE)}")
+    return images_to_array([f.image for f in frames]), encoding
 
 
 def main(args: list[str] | None = None) -> int:
