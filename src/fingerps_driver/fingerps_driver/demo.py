@@ -251,7 +251,10 @@ def run(args: argparse.Namespace) -> int:
         time.sleep(0.5)  # let recon_node receive the transient-local calibration
         capture_ms = []
         t_first = time.monotonic()
-        for _ in range(args.bursts):
+        period = 1.0 / args.rate if args.rate > 0 else 0.0
+        for i in range(args.bursts):
+            # At the rig's rate: burst i is requested at t_first + i / rate.
+            time.sleep(max(0.0, t_first + i * period - time.monotonic()))
             t0 = time.monotonic()
             response = node.call(node.capture, CaptureBurst.Request(), timeout=30.0,
                                  what="burst capture")
@@ -337,6 +340,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--bags", default="bags", help="where the session is recorded")
     parser.add_argument("--bursts", type=int, default=5, help="finger bursts to capture")
+    parser.add_argument("--rate", type=float, default=5.0,
+                        help="bursts requested per second (default 5, the paper's rig: a "
+                             "burst within 0.2 s); 0 = back to back")
     parser.add_argument("--figures", help="also write the figures as JSON to this file")
     parser.add_argument("--model", choices=("lambert", "hk"), default="hk",
                         help="reflectance model of the reconstruction (default hk)")

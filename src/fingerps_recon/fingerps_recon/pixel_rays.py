@@ -71,8 +71,14 @@ def _cached_lights(led_bytes: bytes, count: int, k_bytes: bytes, shape: tuple[in
                    working_distance_m: float) -> np.ndarray:
     leds = np.frombuffer(led_bytes).reshape(count, 3)
     points = pixel_rays_optical(np.frombuffer(k_bytes).reshape(3, 3), shape) * working_distance_m
-    to_led = leds[:, None, None, :] - points[None]
-    to_led /= np.linalg.norm(to_led, axis=-1, keepdims=True)
-    lights = optical_to_ps(to_led).astype(np.float32)
+    px, py, pz = (np.ascontiguousarray(points[..., i]) for i in range(3))
+    lights = np.empty((count, *shape, 3), dtype=np.float32)
+    for k, (lx, ly, lz) in enumerate(leds):  # one LED at a time: planes, no (K, H, W, 3) temp
+        dx, dy, dz = lx - px, ly - py, lz - pz
+        inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+        # optical -> PS frame (x, -y, -z), as frames.optical_to_ps
+        lights[k, ..., 0] = dx * inv
+        lights[k, ..., 1] = -(dy * inv)
+        lights[k, ..., 2] = -(dz * inv)
     lights.setflags(write=False)
     return lights

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
-from sensor_msgs.msg import Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon import qos, topics
@@ -105,6 +105,7 @@ class ReconNode(Node):
         self._lights: LightCalibration | None = None
         self._flat: FlatField | None = None
         self._flat_maps: np.ndarray | None = None
+        self._camera: CameraInfo | None = None
         self._prepared = PreparedCalibrations()
         self._ready = False
 
@@ -113,6 +114,8 @@ class ReconNode(Node):
                                  qos.CALIBRATION_QOS)
         self.create_subscription(FlatField, topics.FLAT_FIELD, self._on_flat,
                                  qos.CALIBRATION_QOS)
+        self.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_camera_info,
+                                 qos.SENSOR_QOS)
         self._pub_normals = self.create_publisher(Image, topics.NORMALS, qos.OUTPUT_QOS)
         self._pub_map = self.create_publisher(Image, topics.NORMAL_MAP, qos.OUTPUT_QOS)
         self._pub_depth = self.create_publisher(Image, topics.DEPTH, qos.OUTPUT_QOS)
@@ -144,6 +147,10 @@ class ReconNode(Node):
         self._flat, self._flat_maps = msg, maps
         self.get_logger().info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
 
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        """Kept so that the calibration is prepared for the camera before its first burst."""
+        self._camera = msg
+
     def _on_burst(self, msg: Burst) -> None:
         with self._cv:
             if len(self._queue) == self._queue.maxlen:
@@ -166,11 +173,18 @@ class ReconNode(Node):
         self._warm_up()
         while True:
             with self._cv:
-                while not self._queue and not self._stop:
+                if not self._queue and not self._stop:
                     self._cv.wait(timeout=0.5)
                 if self._stop:
                     return
-                burst, arrival_ns = self._queue.popleft()
+                if not self._queue:
+                    idle = True
+                else:
+                    idle = False
+                    burst, arrival_ns = self._queue.popleft()
+            if idle:
+                self._prepare_ahead()
+                continue
             try:
                 self._reconstruct(burst, arrival_ns)
                 self._done += 1
@@ -181,6 +195,29 @@ class ReconNode(Node):
             except FingerpsReconError as exc:
                 self._failed += 1
                 self._report(burst, exc)
+
+    def _prepare_ahead(self) -> None:
+        """While idle: prepare the calibration in force for the camera seen on camera_info
+        (so that its first burst does not pay for it); the bursts prepare it otherwise."""
+        lights, camera = self._lights, self._camera
+        if lights is None or camera is None or camera.k[0] <= 0:
+            return
+        shape = (int(camera.height), int(camera.width))
+        maps = self._flat_maps
+        if maps is not None and maps.shape != (len(lights.directions), *shape):
+            maps = None
+        try:
+            count = self._prepared.count
+            self._prepared.get(lights, maps, np.asarray(camera.k, dtype=np.float64).reshape(3, 3),
+                               shape, self._options())
+            if self._prepared.count != count:
+                self.get_logger().info(
+                    f"calibration prepared for the {shape[1]}x{shape[0]} camera in "
+                    f"{self._prepared.seconds * 1e3:.0f} ms"
+                    + ("" if maps is not None else " (no flat field)"))
+        except FingerpsReconError as exc:  # the first burst will say it again, counted
+            self.get_logger().warning(f"calibration not prepared: {exc}",
+                                      throttle_duration_sec=10.0)
 
     def _report(self, burst: Burst, exc: Exception) -> None:
         self._last_error = f"burst {burst.burst_id}: {exc}"
@@ -226,9 +263,10 @@ class ReconNode(Node):
         stamp_ns = header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
         self._stages.add(stamp_ns, arrival_ns, start_ns, result.timings_ms["total"],
                          time.time_ns())
+        stages = ", ".join(f"{k} {v:.0f}" for k, v in result.timings_ms.items() if k != "total")
         self.get_logger().info(
             f"burst {burst.burst_id}: {result.mask.sum()} px, "
-            f"{result.timings_ms['total']:.0f} ms", throttle_duration_sec=2.0)
+            f"{result.timings_ms['total']:.0f} ms ({stages} ms)", throttle_duration_sec=2.0)
 
     # ------------------------------------------------------------------ diagnostics, exit
     def _publish_diagnostics(self) -> None:
@@ -350,10 +388,13 @@ def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndar
     if k_matrix[0, 0] <= 0:
         raise FingerpsReconError("the burst's camera_info has no intrinsics (fx <= 0)")
     start = time.perf_counter()
-    calibration = (prepared or PreparedCalibrations()).get(
-        lights, maps, k_matrix, images.shape[1:], options)
+    cache = prepared or PreparedCalibrations()
+    count = cache.count
+    calibration = cache.get(lights, maps, k_matrix, images.shape[1:], options)
     result = reconstruct_prepared(images, calibration, full_scale=full_scale, dark=dark,
                                   options=options)
+    if cache.count != count:  # prepared for this burst: say what it cost
+        result.timings_ms["calibration"] = cache.seconds * 1e3
     result.timings_ms["total"] = (time.perf_counter() - start) * 1e3
     return BurstReconstruction(result, images, dark, full_scale, maps is not None)
 
