@@ -14,7 +14,9 @@ from mcap.reader import make_reader
 
 from fingerps_recon.ply import read_ply
 
-MAE_LIMIT_DEG = 2.0  # HK with calibrated near lights: ~1.3 measured (Lambertian ~3.2)
+# The issue-10 bound: HK with calibrated near lights measures 1.2921-1.2923 deg over the
+# bursts a run reconstructs (Lambertian ~3.2).
+MAE_LIMIT_DEG = 1.3
 
 
 def test_demo_reconstructs_the_simulated_finger(ros_domain: int, tmp_path: Path) -> None:

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import rclpy
 from ament_index_python.packages import get_package_prefix
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
@@ -75,7 +76,16 @@ class Received:
     clouds: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     latency_ms: dict[int, float] = field(default_factory=dict)
     arrival: dict[int, float] = field(default_factory=dict)   # time.monotonic() of receipt
+    # recon_node's bursts done, dropped, failed and incomplete so far (its /diagnostics)
+    recon_counts: dict[str, int] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def settled(self) -> tuple[int, int]:
+        """(outputs received whole, bursts recon_node has finished with in any way)."""
+        with self.lock:
+            whole = min(len(self.clouds), len(self.normals), len(self.depth),
+                        len(self.normal_map))
+            return whole, sum(self.recon_counts.values())
 
 
 def _stamp_ns(msg: Image | PointCloud2) -> int:
@@ -100,6 +110,16 @@ class DemoClient(Node):
         self.create_subscription(Image, topics.NORMAL_MAP,
                                  lambda m: self._keep(r.normal_map, m), qos.OUTPUT_QOS)
         self.create_subscription(PointCloud2, topics.POINTS, self._on_cloud, qos.OUTPUT_QOS)
+        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, 10)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.endswith("recon: reconstruction"):
+                values = {kv.key: kv.value for kv in status.values}
+                with self.received.lock:
+                    self.received.recon_counts = {
+                        key: int(values.get(key, 0)) for key in
+                        ("bursts_done", "bursts_dropped", "bursts_failed", "bursts_incomplete")}
 
     def _keep(self, store: dict[int, np.ndarray], msg: Image) -> None:
         with self.received.lock:
@@ -144,16 +164,17 @@ class DemoClient(Node):
 
 
 def wait_for_outputs(received: Received, expected: int, *, quiet_s: float) -> None:
-    """Wait until ``expected`` bursts are reconstructed, or none arrived for ``quiet_s``."""
+    """Wait until ``expected`` bursts are reconstructed, or recon_node has finished with all
+    of them (some dropped or failed) and their outputs are in, or nothing changed for
+    ``quiet_s``."""
     last_count, last_change = -1, time.monotonic()
     while time.monotonic() - last_change < quiet_s:
-        with received.lock:
-            count = min(len(received.clouds), len(received.normals), len(received.depth),
-                        len(received.normal_map))
-        if count >= expected:
+        count, finished = received.settled()
+        done = received.recon_counts.get("bursts_done", 0)
+        if count >= expected or (finished >= expected and count >= done):
             return
-        if count != last_count:
-            last_count, last_change = count, time.monotonic()
+        if count + finished != last_count:
+            last_count, last_change = count + finished, time.monotonic()
         time.sleep(0.05)
 
 
