@@ -21,38 +21,34 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
 - cloud: ``height_to_distance`` + ``depth_to_points``.
 - lambert_total: flat_field + mask + lambertian + transform + integration_fast + cloud run
   back to back; lambert_total_perspective: the same with the perspective integration.
-- pipeline_lambert / pipeline_hk: ``fingerps_recon.pipeline.reconstruct`` as recon_node
-  calls it after the demo's calibration: near lights from the LED positions, white-target
-  irradiance, perspective views and integration, ridge transform, points. These are the
-  figures the issue's targets (Lambertian <= 30 ms, HK <= 150 ms burst -> point cloud) are
-  about; ``recon.ms.lambert_total`` / ``recon.ms.hk_total`` are the hand-chained stages.
+- pipeline_prepare: ``fingerps_recon.pipeline.prepare_calibration`` for the demo's
+  calibration (near lights from the LED positions, white-target irradiance, perspective
+  views), its caches emptied: what recon_node does once per calibration and camera.
+- pipeline_lambert / pipeline_hk: ``fingerps_recon.pipeline.reconstruct_prepared`` with that
+  prepared calibration, as recon_node runs it per burst (perspective integration, ridge
+  transform, points). The figures issue 10's targets are about (Lambertian <= 25 ms, HK
+  <= 80 ms); ``recon.ms.lambert_total`` / ``recon.ms.hk_total`` are hand-chained stages.
 - hk_solve / hk_total: ``solve_hk`` (10 iterations) from the Lambertian start, and the
-  HK path (Lambertian path with the HK solve after the Lambertian one).
+  HK path (Lambertian path with the HK solve after the Lambertian one), distant lights.
+- hk_kernel_0_iterations / hk_kernel_10_iterations: ``solve_hk`` with the pipeline's
+  near-light inputs, 0 and 10 iterations (tol 0); their difference over 10 is one LM
+  iteration, from which ``recon.hk_kernel.*`` (flops counted in the kernel's source).
 
-Where the time goes. Measured on the two-core machine while other work kept its load average
-at 1.5-3.5, so every figure moves by a factor of up to ~2 between runs; compare medians
-taken in the same run (minima are the best guide to the uncontended cost). Lambertian path,
-medians (minima) in ms: flat field 5 (4), mask 7 (6), Lambertian 8-15 (8), transform 6 (5),
-FAST integration 20-28 (19), cloud 2 (1.5): 60-80 (50) in all, against ~300 before this
-change (Lambertian 50-75, masked PCG integration 130-160, ridge transform 60-85, cloud 4;
-flat field and mask unchanged). The 30 ms target is not met; what is left:
+Where the time goes (medians on the 2-core machine, nothing else running; ``make bench``).
+The node's path (``pipeline_*``: the calibration prepared once, 78 ms, then per burst):
+Lambertian 20 ms = checks, saturation and the finger mask ~3.5, the compiled Lambertian
+solve with its misfit ~2.7, the ridge transform ~2.4, the perspective integration ~11
+(five 432 x 480 DCT pairs, ~0.5 ms each, the rest stencils and set-up), points ~1; HK 60 ms
+= the same plus the HK solve ~36 (14 of it gathering, the initial fit and the first step;
+4.5 ms an LM iteration, ``recon.hk_kernel.*``). Before issue 10: 133 and 381 ms (numpy
+passes, the near-light directions and irradiance and the Lambertian misfit recomputed per
+burst). What is left is the integration: ``tol=1e-3`` would drop one DCT pair (~1 ms) and
+change the finger's depth by ~0.2 um RMS.
 
-- integration (~2/5): 5 DCT pairs of the 432 x 480 box (~0.8 ms per DCT; the Frankot–Chellappa
-  start and 4 conjugate-gradient iterations to the relative residual 1e-4 the analytic tests
-  need), ~1 ms of stencil and vector passes per iteration and ~5 ms of set-up (slopes,
-  right-hand side, components, means). ``tol=1e-3`` drops one DCT pair (~2-3 ms) and changes
-  the finger's depth by ~0.2 um RMS;
-- flat field and mask (~1/5, other modules): full-frame passes over the whole burst;
-- Lambertian: the burst's float32 copy, the usable-light tests and light codes, one 3 x 7
-  product (einsum: OpenBLAS's threaded sgemm with a 3-row operand was 5-10x slower and
-  erratic with the other core busy) and the ~10 000 margin pixels with shadowed lights;
-- transform: three box filters and two normalisations on the mask's box.
-
-Every stage is float32 on the mask's bounding box (432 x 459 of 659 x 493). BLAS does only
-the few 7 x 3 pseudo-inverses here (the products are einsum, the rest OpenCV, pocketfft and
-numpy loops), so OPENBLAS_CORETYPE, which selects an older, slower OpenBLAS kernel on the
-machines that set it (see the environment notes), should change little; it was unset where
-these figures were taken (the table's header prints it).
+BLAS does only the few 3 x 3 solves of the calibration here (the per-pixel solves are numba
+kernels, the integration pocketfft and OpenCV), so OPENBLAS_CORETYPE, which selects an older,
+slower OpenBLAS kernel on the machines that set it (see the environment notes), changes
+little; the table's header prints it.
 """
 
 from __future__ import annotations
