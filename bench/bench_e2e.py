@@ -59,10 +59,8 @@ Alone: ``python bench/bench_e2e.py`` (``--no-demo`` skips the demo runs).
 from __future__ import annotations
 
 import argparse
-import fcntl
 import json
 import os
-import random
 import signal
 import struct
 import subprocess
@@ -70,13 +68,16 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from ament_index_python.packages import get_package_prefix
+
+from fingerps_driver.demo import executable
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ros_domain import own_ros_domain
 
 DEMO_RUNS = 3
 DEMO_NAMES = ("e2e.bursts_per_s", "e2e.latency_ms_median", "e2e.mae_deg")
@@ -92,7 +93,6 @@ DELIVERED_FRACTION = 0.9       # below this share of the rate asked for, the dri
 FIRST_CLOUD_STARTS = 3
 GRACE_MAX_S = 20.0             # longest wait for a window's last clouds
 STOP_TIMEOUT_S = 20.0
-DOMAIN_RANGE = range(40, 102)  # as tests/graph: Fast DDS ports above 101 can collide
 
 # Sphere placements of the light calibration (as the demo's), optical frame, metres.
 SPHERE_PLACEMENTS = ((2.0e-3, -1.5e-3, 0.094), (-4.0e-3, 2.0e-3, 0.092),
@@ -101,37 +101,6 @@ SPHERE_PLACEMENTS = ((2.0e-3, -1.5e-3, 0.094), (-4.0e-3, 2.0e-3, 0.092),
 
 class BenchError(Exception):
     """The benchmark could not complete; the message says which step and where the logs are."""
-
-
-def executable(package: str, name: str) -> str:
-    path = Path(get_package_prefix(package)) / "lib" / package / name
-    if not path.is_file():
-        raise BenchError(f"{path} is missing: build the workspace (make build)")
-    return str(path)
-
-
-@contextmanager
-def ros_domain() -> Iterator[int]:
-    """A ROS_DOMAIN_ID no concurrent graph test or benchmark on this machine holds."""
-    lock_dir = Path(tempfile.gettempdir()) / "fingerps_ros_domains"
-    lock_dir.mkdir(exist_ok=True)
-    candidates = list(DOMAIN_RANGE)
-    random.shuffle(candidates)
-    for domain_id in candidates:
-        handle = open(lock_dir / f"{domain_id}.lock", "w")
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        break
-    else:
-        raise BenchError(f"every ROS domain id in {DOMAIN_RANGE} is held by another run")
-    try:
-        yield domain_id
-    finally:
-        fcntl.flock(handle, fcntl.LOCK_UN)
-        handle.close()
 
 
 def graph_env(domain_id: int, home: Path) -> dict[str, str]:
@@ -554,7 +523,7 @@ def run_kiosk(env: dict[str, str], domain_id: int, home: Path) -> dict[str, floa
 
 def run(*, demo_runs: int = DEMO_RUNS) -> dict[str, float]:
     t_start = time.monotonic()
-    with ros_domain() as domain_id, tempfile.TemporaryDirectory(prefix="bench_e2e_") as tmp:
+    with own_ros_domain() as domain_id, tempfile.TemporaryDirectory(prefix="bench_e2e_") as tmp:
         home = Path(tmp)
         env = graph_env(domain_id, home)
         figures = run_kiosk(env, domain_id, home)

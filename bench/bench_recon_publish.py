@@ -50,28 +50,27 @@ does this benchmark's publisher; its subscriber keeps Fast DDS's defaults, as a 
 from __future__ import annotations
 
 import argparse
-import fcntl
 import json
 import os
-import random
 import signal
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import TextIO
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ros_domain import own_ros_domain
+
 RUNS = 21
 MIN_RUNS = 15
 OUTPUTS = ("normals", "normal_map", "depth", "albedo", "points")
 ACK_TOPIC = "bench_recon_publish_ack"
-DOMAIN_RANGE = range(40, 102)  # as tests/graph/conftest.py
 START_TIMEOUT_S = 60.0
 ROUND_TIMEOUT_S = 20.0
 
@@ -120,27 +119,6 @@ def _subscribe() -> int:
 
 
 # ------------------------------------------------------------------ the measuring process
-@contextmanager
-def _own_domain() -> Iterator[int]:
-    """A ROS domain id no concurrent test run or benchmark on this host holds."""
-    lock_dir = Path(tempfile.gettempdir()) / "fingerps_ros_domains"
-    lock_dir.mkdir(exist_ok=True)
-    candidates = list(DOMAIN_RANGE)
-    random.shuffle(candidates)
-    for domain_id in candidates:
-        handle = open(lock_dir / f"{domain_id}.lock", "w")  # held until the run ends
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        try:
-            yield domain_id
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-            handle.close()
-        return
-    raise RuntimeError(f"every ROS domain id in {DOMAIN_RANGE} is held by another run")
 
 
 def _result() -> object:
@@ -213,7 +191,7 @@ def measure(repeats: int = RUNS) -> dict[str, list[float]]:
         raise ValueError(f"repeats must be >= {MIN_RUNS}, got {repeats}")
     result = _result()
     times = {"intake": _intake(result, repeats)}
-    with _own_domain() as domain, tempfile.TemporaryFile("w+") as log:
+    with own_ros_domain() as domain, tempfile.TemporaryFile("w+") as log:
         env = {**os.environ, "ROS_DOMAIN_ID": str(domain),
                "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PYTHONUNBUFFERED": "1"}
         env.pop("ROS_STATIC_PEERS", None)

@@ -33,11 +33,12 @@ writable the kernels are compiled in every process (a warning says so).
 from __future__ import annotations
 
 import math
-import warnings
 
 import numba
 import numpy as np
 from numba import prange
+
+from .kernel_compile import inline_kernel, parallel_kernel, serial_kernel
 
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
 _U = numba.uint64
@@ -86,34 +87,7 @@ _BIAS = np.int32(127)
 _MANTISSA = np.int32(23)
 
 
-def _compile(fn, **options):
-    """``numba.njit(fastmath=False, error_model="numpy", cache=True, **options)``, without the
-    on-disk cache where numba finds no writable cache directory."""
-    options = {"fastmath": False, "error_model": "numpy", "nogil": True, **options}
-    try:
-        return numba.njit(cache=True, **options)(fn)
-    except RuntimeError as exc:  # "cannot cache function ...: no locator available"
-        warnings.warn(f"HK kernel {fn.__name__} is not cached on disk ({exc}); set "
-                      "NUMBA_CACHE_DIR to a writable directory to cache it", stacklevel=3)
-        return numba.njit(cache=False, **options)(fn)
-
-
-def _kernel(fn):
-    """A parallel kernel (``prange`` over chunks of pixels)."""
-    return _compile(fn, parallel=True)
-
-
-def _serial(fn):
-    """A serial helper of the kernels, run on one chunk."""
-    return _compile(fn)
-
-
-def _inline(fn):
-    """Scalar arithmetic inlined into the loops (keeps them vectorisable)."""
-    return _compile(fn, inline="always")
-
-
-@_inline
+@inline_kernel
 def _exp(x):
     """exp(x), float32, relative error < 2e-7 for x >= -87.33 (branch-free, inlined)."""
     x = max(x, _EXP_LO)
@@ -126,13 +100,13 @@ def _exp(x):
     return poly * np.int32(bits).view(np.float32)
 
 
-@_serial
+@serial_kernel
 def _chunk_span(chunk, count):
     start = chunk * CHUNK
     return start, min(start + CHUNK, count) - start
 
 
-@_serial
+@serial_kernel
 def _view_terms(n, j0, m, views, consts, scr):
     """Per pixel of the chunk: c_r = v.n (floored), 1/c_r, the capped 1/c_r of the
     derivatives, v.t_x, v.t_y for the tangent directions t = e - n_axis n, and whether
@@ -165,7 +139,7 @@ def _view_terms(n, j0, m, views, consts, scr):
         scr[_U(_VTY + i)] = vy - cr * ny
 
 
-@_serial
+@serial_kernel
 def _light_terms(k, j0, m, lights, intensity, phase, scr):
     """Light k's direction, e_k p and e_k for the chunk's pixels into the scratch."""
     if lights.shape[2] > 1:
@@ -194,7 +168,7 @@ def _light_terms(k, j0, m, lights, intensity, phase, scr):
             scr[_U(_E + i)] = e
 
 
-@_serial
+@serial_kernel
 def _model_sums(n, rho, j0, m, a, a_tau, neg_tau, values, usable, lights, intensity, phase,
                 consts, scr, terms, acc, sums):
     """The 15 Gauss–Newton sums of the chunk's pixels at normals ``n``, albedo ``rho`` and
@@ -270,7 +244,7 @@ def _model_sums(n, rho, j0, m, a, a_tau, neg_tau, values, usable, lights, intens
             sums[row, _U(j0 + i)] = acc[_U(off + i)]
 
 
-@_serial
+@serial_kernel
 def _steps(j0, m, sums, lam, consts, delta0, w):
     """Damped Gauss–Newton steps of the chunk's pixels (as the numpy backend's
     ``_block_step``): delta0 = Hd^-1 J^T r, w = Hd^-1 J^T P with Hd = H + lambda diag(H)
@@ -308,7 +282,7 @@ def _steps(j0, m, sums, lam, consts, delta0, w):
         w[2, j] = (a13 * c1 + a23 * c2 + a33 * c3) * inv_det
 
 
-@_serial
+@serial_kernel
 def _step_parts(j0, m, sums, delta0, w, parts, chunk):
     """The chunk's parts of the Schur complement on A into ``parts[chunk, 1:5]`` (float64):
     P.r, (J^T P).delta0, P.P, (J^T P).w."""
@@ -323,7 +297,7 @@ def _step_parts(j0, m, sums, delta0, w, parts, chunk):
     parts[chunk, 1], parts[chunk, 2], parts[chunk, 3], parts[chunk, 4] = ga, cd, dd, cw
 
 
-@_kernel
+@parallel_kernel
 def linear_sums(n, values, usable, lights, views, intensity, phase, neg_tau, consts, rows,
                 parts):
     """For A's and rho's joint linear fit at the normals ``n``: per pixel P.P, P.C, C.C, P.I,
@@ -372,7 +346,7 @@ def linear_sums(n, values, usable, lights, views, intensity, phase, neg_tau, con
         parts[chunk, 1] = den
 
 
-@_kernel
+@parallel_kernel
 def start(n, rho, lam, rows, scale, a_tau, neg_tau, values, usable, lights, views, intensity,
           phase, consts, sums, delta0, w, parts):
     """rho in closed form for A = ``scale`` (float64) at the initial normals (from ``rows``
@@ -401,7 +375,7 @@ def start(n, rho, lam, rows, scale, a_tau, neg_tau, values, usable, lights, view
         parts[chunk, 0] = cost
 
 
-@_kernel
+@parallel_kernel
 def candidate(n, rho, delta0, w, scale, trial, a_tau, neg_tau, values, usable, lights, views,
               intensity, phase, consts, sums, n_new, rho_new, sums_new, parts):
     """Each pixel's candidate for A -> ``trial`` (float64; step delta0 - (trial - A) w along
@@ -452,7 +426,7 @@ def candidate(n, rho, delta0, w, scale, trial, a_tau, neg_tau, values, usable, l
         parts[chunk, 2] = dd
 
 
-@_serial
+@serial_kernel
 def _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho_new, lam,
                  scr, chosen):
     """The commit's choice for the chunk's pixels: each keeps the better of its state and
@@ -513,7 +487,7 @@ def _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho
         lam[j] = min(max(lj, low), top)
 
 
-@_kernel
+@parallel_kernel
 def commit(n, rho, lam, scale, trial, at, consts, sums, n_new, rho_new, sums_new, delta0, w,
            parts):
     """Each pixel keeps the better of its state and its candidate at A = ``at`` (float64;
@@ -542,7 +516,7 @@ def commit(n, rho, lam, scale, trial, at, consts, sums, n_new, rho_new, sums_new
 BAD_LIGHT, ZERO_LIGHT, BAD_VIEW, ZERO_VIEW = 1, 2, 4, 8
 
 
-@_inline
+@inline_kernel
 def _use(k, p, images, usable, intensity):
     """Measurement k of image pixel p: its value as float32 and whether it is usable (the
     given ``usable``, or > 0 when ``usable`` has one column; finite; per-pixel intensity
@@ -556,7 +530,7 @@ def _use(k, p, images, usable, intensity):
     return v, u
 
 
-@_kernel
+@parallel_kernel
 def select_pixels(cand, images, usable, intensity, normals, albedo, keep, counts):
     """Which of the candidate image pixels ``cand`` (N,) can be solved: a finite, non-zero
     initial normal, a finite albedo and at least 3 usable measurements (``keep`` (N,)
@@ -580,7 +554,7 @@ def select_pixels(cand, images, usable, intensity, normals, albedo, keep, counts
             keep[j] = good and counts[j] >= 3
 
 
-@_kernel
+@parallel_kernel
 def gather(pix, images, usable, intensity, normals, albedo, lights, views, hg, physical,
            min_cr, values, use, inten, phase, l_dirs, v_dirs, n0, rho0, counts, bad):
     """The solvable pixels ``pix`` (N,) in the passes' layout (as the numpy backend's
@@ -686,7 +660,7 @@ def gather(pix, images, usable, intensity, normals, albedo, lights, views, hg, p
             n0[0, j], n0[1, j], n0[2, j] = nx, ny, nz
 
 
-@_kernel
+@parallel_kernel
 def finish(pix, n, rho, sums, counts, normals, albedo, rms, valid):
     """The result images (flat, zeros where not valid; as the numpy backend): a pixel is
     valid if its normal and albedo are finite and its 3x3 J^T J is non-singular (its

@@ -33,11 +33,11 @@ process (a warning says so). Each combination of input dtypes is compiled once o
 
 from __future__ import annotations
 
-import warnings
-
 import numba
 import numpy as np
 from numba import prange
+
+from .kernel_compile import inline_kernel, parallel_kernel
 
 # Pixels per chunk (a chunk's nine float32 sums, its scratch and its pixels' inputs stay in
 # the core's L1/L2 cache, whatever the number of lights).
@@ -59,30 +59,7 @@ _THIRD = np.float32(1.0 / 3.0)
 _INF = np.float32(np.inf)
 
 
-def _compile(fn, **options):
-    """``numba.njit(cache=True, ...)``, without the on-disk cache where numba finds no
-    writable cache directory (a warning says so)."""
-    options = {"fastmath": False, "error_model": "numpy", "nogil": True, **options}
-    try:
-        return numba.njit(cache=True, **options)(fn)
-    except RuntimeError as exc:  # "cannot cache function ...: no locator available"
-        warnings.warn(f"Lambertian kernel {fn.__name__} is not cached on disk ({exc}); set "
-                      "NUMBA_CACHE_DIR to a writable directory to cache it", stacklevel=2)
-        return numba.njit(cache=False, **options)(fn)
-
-
-def _kernel(fn):
-    """A parallel kernel (``prange`` over chunks of pixels)."""
-    return _compile(fn, parallel=True)
-
-
-def _inline(fn):
-    """A part of the kernel inlined into it (numba IR): no call per chunk, and scalar
-    arithmetic that keeps the loops vectorisable."""
-    return _compile(fn, inline="always")
-
-
-@_inline
+@inline_kernel
 def _light_into_scratch(k, r, c0, m, lights, intensity, scr):
     """Light k's direction and intensity at the chunk's pixels (row r, columns c0 ...
     c0 + m - 1) into the scratch rows _LX, _LY, _LZ, _E: per pixel from ``lights``
@@ -112,14 +89,14 @@ def _light_into_scratch(k, r, c0, m, lights, intensity, scr):
             scr[_U(_E + i)] = e
 
 
-@_inline
+@inline_kernel
 def _used(v, lo, hi, inside, e, lx, ly, lz):
     """Whether a measurement is used (see the module docstring); NaN fails every test."""
     finite = (lx - lx == _F0) & (ly - ly == _F0) & (lz - lz == _F0)
     return (inside > _F0) & (v > lo) & (v < hi) & (e > _F0) & (e < _INF) & finite
 
 
-@_inline
+@inline_kernel
 def _span(chunk, r0, c0, c1, mask):
     """(row, first column, number of pixels) of ``chunk``, narrowed to its first and last
     mask pixel."""
@@ -134,7 +111,7 @@ def _span(chunk, r0, c0, c1, mask):
     return r, start, stop - start
 
 
-@_inline
+@inline_kernel
 def _accumulate(images, lights, intensity, mask, r, start, m, lo, hi, scr, acc):
     """The chunk's normal equations: per pixel, A (upper triangle), r = sum a_k I_k and the
     count of used lights into ``acc`` (zero on entry), light by light."""
@@ -166,7 +143,7 @@ def _accumulate(images, lights, intensity, mask, r, start, m, lo, hi, scr, acc):
             acc[_U(_CNT + i)] += _F1 if use else _F0
 
 
-@_inline
+@inline_kernel
 def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
     """Per pixel of the chunk: b = A^-1 r by the adjugate, the degenerate test, rho = |b|,
     n = b / rho into the scratch rows _NX ... _OK and the result images."""
@@ -207,7 +184,7 @@ def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
         used[r, c] = np.int32(acc[_U(_CNT + i)])
 
 
-@_inline
+@inline_kernel
 def _misfit(images, lights, intensity, r, start, m, lo, hi, scr, acc, parts, chunk):
     """The chunk's misfit at its solved pixels (scratch rows _NX ... _OK): sum of
     (I_k - e_k rho max(0, n . l_k))^2, of I_k and their number over the used measurements
@@ -240,7 +217,7 @@ def _misfit(images, lights, intensity, r, start, m, lo, hi, scr, acc, parts, chu
     parts[chunk, 2] = count
 
 
-@_kernel
+@parallel_kernel
 def solve(images, lights, intensity, mask, box, lo, hi, min_det, normals, albedo, valid, used,
           parts):
     """Solve every mask pixel of the rectangle ``box`` (see the module docstring).

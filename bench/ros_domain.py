@@ -1,0 +1,36 @@
+"""A ROS domain of a benchmark's own: an id that no concurrent graph test or benchmark on
+this machine holds (the lock files tests/graph/conftest.py takes too)."""
+
+from __future__ import annotations
+
+import fcntl
+import random
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+DOMAIN_RANGE = range(40, 102)  # as tests/graph: Fast DDS ports of ids above 101 can collide
+
+
+@contextmanager
+def own_ros_domain() -> Iterator[int]:
+    """Hold a free ROS_DOMAIN_ID for the block; RuntimeError if every one is held."""
+    lock_dir = Path(tempfile.gettempdir()) / "fingerps_ros_domains"
+    lock_dir.mkdir(exist_ok=True)
+    candidates = list(DOMAIN_RANGE)
+    random.shuffle(candidates)
+    for domain_id in candidates:
+        handle = open(lock_dir / f"{domain_id}.lock", "w")  # held until the block ends
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        try:
+            yield domain_id
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+            handle.close()
+        return
+    raise RuntimeError(f"every ROS domain id in {DOMAIN_RANGE} is held by another run")
