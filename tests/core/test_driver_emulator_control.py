@@ -143,6 +143,13 @@ def test_immediate_disconnect_and_errors_are_answered(control, board, tmp_path):
         control.command("inject drop_reply 1 2")
     with pytest.raises(BoardEmulatorError, match="count must be"):
         control.inject(Fault.DROP_REPLY, 0)
+    # A huge count is refused with a reason and the channel keeps answering (it used to
+    # kill the control thread with a MemoryError).
+    with pytest.raises(BoardEmulatorError, match="count \\+ after must be <= 10000"):
+        control.command("inject drop_reply 100000000000")
+    with pytest.raises(BoardEmulatorError, match="after must be"):
+        control.command("inject drop_reply 1 after 100000000000")
+    assert control.command("ping") is True
     assert "inject FAULT [COUNT] [after N]" in control.command("help")
     control.reconnect()
     assert board.is_open is False

@@ -97,3 +97,40 @@ def test_bad_start_up_input_is_one_clear_line(ros_domain: int, args: list[str],
     assert "Traceback" not in run.stderr + run.stdout
     errors = [line for line in run.stderr.splitlines() if "] error:" in line]
     assert len(errors) == 1 and expected in errors[0], run.stderr
+
+
+def test_diagnostics_say_whether_continuous_capture_keeps_the_rate(
+        ros_node: Node, start_node, spin_until) -> None:
+    import time
+
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    driver = start_node("fingerps_driver", "driver_node", "--ros-args", "-p", "rate:=30.0")
+    driver.wait_in_graph(ros_node, "driver", NS)
+    statuses: list[tuple[float, DiagnosticStatus]] = []  # (time received, status)
+    ros_node.create_subscription(
+        DiagnosticArray, topics.DIAGNOSTICS,
+        lambda m: statuses.extend((time.monotonic(), s) for s in m.status
+                                  if s.name.endswith("driver: bursts")), 10)
+
+    def values(status: DiagnosticStatus) -> dict[str, str]:
+        return {kv.key: kv.value for kv in status.values}
+
+    def judged_twice() -> bool:  # two verdicts on full 5 s windows, 5 s apart
+        judged = [(t, s) for t, s in statuses if values(s).get("rate_achieved")]
+        return bool(judged) and judged[-1][0] - judged[0][0] >= 5.0
+
+    spin_until(judged_twice, "the driver's verdicts on its rate", timeout=40.0)
+    judged = [(t, s) for t, s in statuses if values(s).get("rate_achieved")]
+    (t0, first), (t1, last) = judged[0], judged[-1]
+    # What the driver captured between the two verdicts, from its own burst counter.
+    counted = (int(values(last)["bursts_ok"]) - int(values(first)["bursts_ok"])) / (t1 - t0)
+    achieved = float(values(last)["rate_achieved"])
+    assert values(last)["rate_requested"] == "30"
+    assert achieved == pytest.approx(counted, rel=0.15), (achieved, counted)
+    behind = achieved < 0.9 * 30
+    assert (last.level == DiagnosticStatus.WARN) == behind, last
+    assert ("bursts/s of the 30 asked for" in last.message) == behind
+    print(f"\nasked 30 bursts/s: the driver reports {achieved} ({counted:.1f} counted)")
+    driver.send_signal(signal.SIGINT)
+    assert driver.wait() == 0

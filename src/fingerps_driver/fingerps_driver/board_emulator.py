@@ -63,6 +63,10 @@ class BoardEmulatorError(FingerpsDriverError):
     """The emulator cannot do what was asked (see the message)."""
 
 
+# Replies a fault queue may cover (faults plus the replies let through before them).
+MAX_PENDING_FAULTS = 10_000
+
+
 class Fault(Enum):
     """Faults ``BoardEmulator.inject`` can cause.
 
@@ -288,12 +292,20 @@ class BoardEmulator:
             raise ValueError(f"count must be >= 1, got {count}")
         if after < 0:
             raise ValueError(f"after must be >= 0, got {after}")
+        if count + after > MAX_PENDING_FAULTS:
+            raise ValueError(
+                f"count + after must be <= {MAX_PENDING_FAULTS} (replies a test can wait "
+                f"for), got {count} + {after}")
         if fault is Fault.DISCONNECT and after == 0:
             self.disconnect()
             return
         if fault is Fault.DISCONNECT:
             count = 1
         with self._lock:
+            if len(self._faults) + count + after > MAX_PENDING_FAULTS:
+                raise ValueError(
+                    f"at most {MAX_PENDING_FAULTS} faults may be pending, "
+                    f"{len(self._faults)} are; 'clear' them first")
             self._faults.extend([None] * after + [fault] * count)
 
     def clear_faults(self) -> None:
@@ -590,6 +602,9 @@ class EmulatorControlServer:
             return {"ok": True, "result": self._run(words[0], words[1:])}
         except (BoardEmulatorError, ValueError, OSError) as exc:
             return {"ok": False, "error": str(exc)}
+        except Exception as exc:  # the control thread must survive any command
+            return {"ok": False, "error": f"{' '.join(words)!r} failed: "
+                                          f"{type(exc).__name__}: {exc}"}
 
     def _run(self, command: str, args: list[str]) -> object:
         emu = self._emulator

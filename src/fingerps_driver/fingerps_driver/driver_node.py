@@ -55,6 +55,7 @@ from fingerps_driver.burst_plan import (
 from fingerps_driver.camera import Camera, CameraError, SimulatedCamera
 from fingerps_driver.camera_folder import FolderCamera
 from fingerps_driver.camera_opencv import OpenCvCamera, parse_device
+from fingerps_driver.capture_rate import CaptureRate
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.led_board import BoardError, BoardRejectedError, LedBoard
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
@@ -131,6 +132,7 @@ class DriverNode(Node):
         self._lock = threading.Lock()
         self._counters = _Counters()
         self._burst_ms: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
+        self._capture_rate = CaptureRate()
         self._publish_ms: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
         self._burst_id = 0
         self._emulator: BoardEmulator | None = None
@@ -339,6 +341,7 @@ class DriverNode(Node):
                         self._rig.config, sphere_center_optical_m=tuple(param.value)))
 
     def _apply_rate(self, rate: float) -> None:
+        self._capture_rate.set_rate(rate, time.monotonic())
         if self._rate_timer is not None:
             self.destroy_timer(self._rate_timer)
             self._rate_timer = None
@@ -591,7 +594,9 @@ class DriverNode(Node):
     def _on_rate_timer(self) -> None:
         if self._board_state is not BoardState.CONNECTED:
             return  # reported in the diagnostics; requests would only fail
-        self.capture(with_dark=bool(self._param("with_dark_frame")))
+        result, _ = self.capture(with_dark=bool(self._param("with_dark_frame")))
+        if result.ok:
+            self._capture_rate.captured(time.monotonic())
 
     def _on_capture(self, request: CaptureBurst.Request,
                     response: CaptureBurst.Response) -> CaptureBurst.Response:
@@ -784,6 +789,13 @@ class DriverNode(Node):
                                   hardware_id=str(self._param("port")))
         status.level = DiagnosticStatus.WARN if c.last_burst_failed else DiagnosticStatus.OK
         status.message = f"last burst failed: {c.last_error}" if c.last_burst_failed else "ok"
+        rate = self._capture_rate.report(time.monotonic())
+        if rate.behind and not c.last_burst_failed:
+            status.level = DiagnosticStatus.WARN
+            status.message = (
+                f"continuous capture delivers {rate.achieved:.1f} bursts/s of the "
+                f"{rate.requested:g} asked for: a burst takes longer than 1/rate (see "
+                "burst_ms_median and publish_ms_median); lower rate")
 
         def stats(values: collections.deque[float]) -> tuple[str, str]:
             if not values:
@@ -803,6 +815,9 @@ class DriverNode(Node):
             KeyValue(key="publish_ms_median", value=publish_median),
             KeyValue(key="publish_ms_max", value=publish_max),
             KeyValue(key="timing_window", value=str(len(self._publish_ms))),
+            KeyValue(key="rate_requested", value=f"{rate.requested:g}"),
+            KeyValue(key="rate_achieved",
+                     value="" if rate.achieved is None else f"{rate.achieved:.2f}"),
         ]
         return status
 
