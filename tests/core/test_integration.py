@@ -14,6 +14,7 @@ from fingerps_recon.integration import (
     integrate_normals,
     integrate_normals_perspective,
 )
+from fingerps_recon.pixel_rays import pixel_rays_optical
 
 PIXEL = 2e-5  # metres per pixel
 
@@ -353,3 +354,18 @@ def test_simulated_finger_depth_from_true_normals() -> None:
     height = integrate_normals(truth.normals_ps, mask=mask, pixel_size_m=0.09 / k[0, 0])
     ortho = height_to_distance(height, working_distance_m=0.09)[mask] - true_depth
     assert rms_um(ortho - ortho.mean()) > 50.0  # measured 110 um: the perspective matters
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -3000.0])
+def test_a_bad_camera_matrix_is_refused_in_one_line(bad: float) -> None:
+    k = np.array([[3000.0, 0.0, 20.0], [0.0, 3000.0, 20.0], [0.0, 0.0, 1.0]])
+    k[0, 0] = bad
+    normals = np.zeros((40, 40, 3), np.float32)
+    normals[..., 2] = 1.0
+    with pytest.raises(FingerpsReconError, match="finite 3x3 intrinsic matrix") as info:
+        integrate_normals_perspective(normals, mask=np.ones((40, 40), bool), camera_matrix=k,
+                                      working_distance_m=0.09)
+    assert "\n" not in str(info.value)
+    with pytest.raises(FingerpsReconError, match="finite 3x3 intrinsic matrix") as info:
+        pixel_rays_optical(k, (4, 4))
+    assert "\n" not in str(info.value)

@@ -92,6 +92,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from .errors import FingerpsReconError
+from .pixel_rays import checked_camera_matrix
 
 _SMALL_COMPONENT = 2048
 
@@ -228,7 +229,7 @@ def integrate_normals_perspective(
         On bad shapes or options, or if the depths come out non-finite.
     """
     n, m = _checked(normals, mask, min_nz=min_nz, tol=tol, max_iter=max_iter, method=method)
-    k = _checked_camera_matrix(camera_matrix)
+    k = checked_camera_matrix(camera_matrix)
     if not (np.isfinite(working_distance_m) and working_distance_m > 0):
         raise FingerpsReconError(
             f"working_distance_m must be a positive number, got {working_distance_m}"
@@ -279,15 +280,6 @@ def _checked(
             f"method must be an IntegrationMethod (FAST or EXACT), got {method!r}"
         )
     return n, m
-
-
-def _checked_camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:
-    k = np.asarray(camera_matrix, dtype=np.float64)
-    if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
-        raise FingerpsReconError(
-            f"camera_matrix must be a finite 3x3 intrinsic matrix with fx, fy > 0, got {k!r}"
-        )
-    return k
 
 
 def _bounding_box(mask: np.ndarray) -> tuple[slice, slice] | None:
@@ -798,7 +790,7 @@ def depth_to_points(
         raise FingerpsReconError(
             f"mask must be a bool array of the depth's shape {depth.shape}, got {m.shape} {m.dtype}"
         )
-    k = _checked_camera_matrix(camera_matrix)
+    k = checked_camera_matrix(camera_matrix)
     fx, s, cx = k[0]
     fy, cy = k[1, 1], k[1, 2]
     h, w = depth.shape

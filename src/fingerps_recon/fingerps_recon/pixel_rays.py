@@ -17,11 +17,20 @@ from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.frames import optical_to_ps
 
 
+def checked_camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:
+    """``camera_matrix`` as a (3, 3) float64 K, or a one-line FingerpsReconError if it is not
+    a finite 3x3 matrix with fx, fy > 0."""
+    k = np.asarray(camera_matrix, dtype=np.float64)
+    if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
+        raise FingerpsReconError(
+            f"camera_matrix must be a finite 3x3 intrinsic matrix with fx, fy > 0, got "
+            f"{k.tolist()}; calibrate the camera (calibrate_camera) or fix camera_info")
+    return k
+
+
 def pixel_rays_optical(camera_matrix: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """(H, W, 3) float64 rays K^-1 (u, v, 1) through each pixel centre, optical frame (z = 1)."""
-    k = np.asarray(camera_matrix, dtype=np.float64)
-    if k.shape != (3, 3) or k[0, 0] <= 0 or k[1, 1] <= 0:
-        raise FingerpsReconError(f"camera_matrix must be a 3x3 K with fx, fy > 0, got {k}")
+    k = checked_camera_matrix(camera_matrix)
     h, w = shape
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     pixels = np.stack([u, v, np.ones_like(u)], axis=-1)
