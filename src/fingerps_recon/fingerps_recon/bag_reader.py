@@ -1,9 +1,11 @@
 """Reading a fingerps session bag: messages by topic, deserialised, schemas checked.
 
 `SessionBagReader` reads a bag directory (its one ``.mcap``) or an ``.mcap`` file in file
-order with `fingerps_recon.mcap_records.scan_records`, so it reads finished bags, bags of a
-killed recorder (no summary) and damaged ones: every intact message before the damage is
-yielded, then `McapDamageError` names the byte offset.
+order with `fingerps_recon.mcap_records.McapScan`, so it reads finished bags, bags of a
+killed recorder (no summary) and damaged ones: a damaged chunk is skipped and reading goes
+on with the next intact one (channels defined in a damaged chunk come from the summary), so
+every intact message is yielded; then, by default, `McapDamageError` names the damaged byte
+ranges (``raise_on_damage=False`` only records them in `SessionBagReader.damage`).
 
 Schema check: the schema text of every ``fingerps_msgs`` type in the bag must equal the full
 definition of the installed type (`fingerps_recon.message_definition`); a bag recorded with
@@ -28,7 +30,7 @@ from rclpy.serialization import deserialize_message
 
 from fingerps_recon.bag_recovery import find_mcap
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.mcap_records import scan_records
+from fingerps_recon.mcap_records import DamagedRange, McapScan, damage_error
 from fingerps_recon.message_definition import (
     MessageDefinitionError,
     load_message_definition,
@@ -132,26 +134,46 @@ class SessionBagReader:
         A bag directory or an ``.mcap`` file.
     check_schemas : bool
         Refuse fingerps_msgs schemas that differ from the installed ones (`check_schema`).
+    raise_on_damage : bool
+        After the last intact message of a damaged file, raise `McapDamageError` (default);
+        with False the damage is only recorded in `damage` and `orphaned_messages`.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, check_schemas: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, check_schemas: bool = True,
+                 raise_on_damage: bool = True) -> None:
         self.mcap_path = find_mcap(path)
         self._check = check_schemas
+        self._raise = raise_on_damage
+        self._scan: McapScan | None = None
+
+    @property
+    def damage(self) -> tuple[DamagedRange, ...]:
+        """Damaged byte ranges met by the last complete `messages` pass (empty before)."""
+        return () if self._scan is None else tuple(self._scan.damage)
+
+    @property
+    def orphaned_messages(self) -> int:
+        """Intact messages of the last pass whose channel is defined nowhere readable."""
+        return 0 if self._scan is None else sum(self._scan.orphans.values())
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Yield the messages (of the given topics only, when given) in file order.
+
+        Damaged chunks are skipped; reading resumes at the next intact chunk.
 
         Raises
         ------
         BagSchemaError
             At the first schema of ours that differs from the installed definition.
         McapDamageError
-            After the last intact message of a damaged file.
+            After the last intact message of a damaged file (unless ``raise_on_damage`` is
+            False), naming every damaged byte range.
         """
         wanted = None if topics is None else set(topics)
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
-        for item in scan_records(self.mcap_path):
+        scan = McapScan(self.mcap_path)
+        for item in scan:
             record = item.record
             if isinstance(record, Schema):
                 if self._check:
@@ -170,12 +192,22 @@ class SessionBagReader:
                     log_time_ns=record.log_time, publish_time_ns=record.publish_time,
                     data=record.data,
                     offered_qos_yaml=channel.metadata.get("offered_qos_profiles", "[]"))
+        self._scan = scan
+        if self._raise and (scan.damage or scan.orphans):
+            raise damage_error(scan)
 
     def topics(self) -> dict[str, str]:
-        """Topic -> type name of every channel (reads the whole file)."""
+        """Topic -> type name of every channel, damaged chunks' ones from the summary (reads
+        the whole file unless the summary is intact)."""
+        scan = McapScan(self.mcap_path)
+        summary = scan.summary
+        if summary.source == "footer" and summary.channels:
+            return {ch.topic: (summary.schemas[ch.schema_id].name
+                               if ch.schema_id in summary.schemas else "")
+                    for ch in summary.channels.values()}
         found: dict[str, str] = {}
         schemas: dict[int, str] = {}
-        for item in scan_records(self.mcap_path):
+        for item in scan:
             record = item.record
             if isinstance(record, Schema):
                 schemas[record.id] = record.name

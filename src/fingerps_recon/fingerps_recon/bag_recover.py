@@ -3,10 +3,12 @@
     ros2 run fingerps_recon bag_recover bags/fingerps_20250131T120000Z
     ros2 run fingerps_recon bag_recover broken.mcap -o bags/repaired
 
-Reads the MCAP file record by record, keeps everything before the first damaged record,
-writes a new bag directory (MCAP with summary + metadata.yaml) and prints what was kept and
-what was lost (the byte offset of the damage, the messages and bytes lost). The verb only
-assembles options; `fingerps_recon.bag_recovery` does the work.
+Reads the MCAP file record by record, skips each damaged chunk and resynchronises on the
+next intact one, keeps every message of every intact chunk (channels defined in a damaged
+chunk are taken from the file's summary), writes a new bag directory (MCAP with summary +
+metadata.yaml) and prints what was kept and what was lost: each damaged byte range and why,
+the chunks lost, and the messages lost per topic (exact when the summary survived, else a
+lower bound). The verb only assembles options; `fingerps_recon.bag_recovery` does the work.
 
 Exit codes: 0 recovered (damage or not), 2 bad input (no such bag, not MCAP, destination
 exists).

@@ -2,11 +2,15 @@
 
 A recorder killed with SIGKILL (or stopped by a full disk) leaves an MCAP file without its
 summary and a bag directory without metadata.yaml; a file cut by a copy or a disk error may
-end in the middle of a chunk. `recover_bag` reads such a file record by record
-(`fingerps_recon.mcap_records.scan_records`), keeps every schema, channel, message and
-metadata record of every intact chunk before the first damage, writes them with
-`SessionBagWriter` into a new bag directory (MCAP with summary + metadata.yaml), and says in a
-`RecoveryReport` what was kept and what was lost.
+end in the middle of a chunk; a flipped bit may damage any chunk. `recover_bag` reads such a
+file with `fingerps_recon.mcap_records.McapScan`, which skips each damaged chunk and
+resynchronises on the next intact one, keeps every schema, channel, message and metadata
+record of every intact chunk (channels and schemas defined in a damaged chunk are taken from
+the file's summary when it is readable), writes them with `SessionBagWriter` into a new bag
+directory (MCAP with summary + metadata.yaml), and says in a `RecoveryReport` what was kept
+and what was lost: the damaged byte ranges and why, the chunks lost, and the messages lost
+per topic (exact when the source's summary survived, else at least the count its message
+indexes give).
 
 Each channel keeps its original schema text, QoS metadata and type hash; the messages keep
 their log and publish times and sequence numbers. The new bag gets one more metadata record,
@@ -17,6 +21,7 @@ No rclpy here.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,13 +29,7 @@ from pathlib import Path
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.mcap_records import (
-    MAGIC,
-    McapDamageError,
-    ScanEnd,
-    scan_records,
-    summary_statistics,
-)
+from fingerps_recon.mcap_records import DamagedRange, McapScan, McapSummary
 from fingerps_recon.message_definition import MessageDefinition
 from fingerps_recon.session_bag import (
     ROSBAG2_METADATA_RECORD,
@@ -57,33 +56,49 @@ class RecoveryReport:
         The new bag directory.
     file_size : int
         Bytes of the source file.
-    kept_bytes : int
-        Bytes of the source up to the end of the last intact record.
     message_counts : dict[str, int]
         Messages kept per topic.
     finished : bool
         Whether the source had its end-of-data record (it was finished, not killed).
-    damage_offset : int or None
-        Byte offset of the first damaged record; None when the file just ends (killed while
-        idle between chunks) or was finished.
-    damage_reason : str
-        What was wrong there ("" without damage).
-    lost_messages : int or None
-        Messages lost, when the source's summary says how many it held; else None.
-    lost_span_ns : tuple[int, int] or None
-        Log-time range of the damaged chunk, when its header could be read.
+    damage : tuple[DamagedRange, ...]
+        The damaged byte ranges of the data section, in file order (empty: no damage).
+    lost_counts : dict[str, int]
+        Messages lost per topic (a channel whose Channel record was lost too is named
+        ``channel <id>``).
+    lost_exact : bool
+        True when `lost_counts` comes from the source's summary statistics (exact); False
+        when it comes from the message indexes after damaged chunks (a lower bound).
+    chunks_kept : int
+        Intact chunks read.
+    chunks_lost : int
+        Chunks in the damaged ranges (from the summary's chunk indexes when readable, else
+        those whose start could still be recognised: a lower bound).
+    summary_source : str
+        Where the source's summary was found (``"footer"``, ``"after DataEnd"``, ``""``).
+    definitions_from_summary : tuple[str, ...]
+        Topics whose channel (or schema) was lost with a damaged chunk and was taken from
+        the summary.
+    lost_spans_ns : tuple[tuple[int, int], ...]
+        Log-time ranges of the lost chunks, when known.
+    undecodable : dict[str, int]
+        Of the lost messages: those read intact whose channel definition was lost with a
+        damaged chunk and is not in a readable summary, per channel.
     """
 
     source: Path
     destination: Path
     file_size: int
-    kept_bytes: int
     message_counts: dict[str, int] = field(default_factory=dict)
     finished: bool = False
-    damage_offset: int | None = None
-    damage_reason: str = ""
-    lost_messages: int | None = None
-    lost_span_ns: tuple[int, int] | None = None
+    damage: tuple[DamagedRange, ...] = ()
+    lost_counts: dict[str, int] = field(default_factory=dict)
+    lost_exact: bool = True
+    chunks_kept: int = 0
+    chunks_lost: int = 0
+    summary_source: str = ""
+    definitions_from_summary: tuple[str, ...] = ()
+    lost_spans_ns: tuple[tuple[int, int], ...] = ()
+    undecodable: dict[str, int] = field(default_factory=dict)
 
     @property
     def message_count(self) -> int:
@@ -91,32 +106,73 @@ class RecoveryReport:
         return sum(self.message_counts.values())
 
     @property
+    def lost_messages(self) -> int:
+        """Messages lost (exact or a lower bound: see `lost_exact`)."""
+        return sum(self.lost_counts.values())
+
+    @property
     def lost_bytes(self) -> int:
-        """Bytes of the source after the last intact record."""
-        return self.file_size - self.kept_bytes
+        """Bytes of the source in damaged ranges."""
+        return sum(d.size for d in self.damage)
+
+    @property
+    def kept_bytes(self) -> int:
+        """Bytes of the source outside the damaged ranges."""
+        return self.file_size - self.lost_bytes
+
+    @property
+    def damage_offset(self) -> int | None:
+        """Byte offset of the first damage; None without damage."""
+        return self.damage[0].start if self.damage else None
+
+    @property
+    def damage_reason(self) -> str:
+        """What was wrong at the first damage (``""`` without damage)."""
+        return self.damage[0].reason if self.damage else ""
 
     def describe(self) -> str:
         """A few lines for people: what was kept, where the damage is, what was lost."""
         lines = [f"recovered {self.source} -> {self.destination}"]
         counts = ", ".join(f"{t}: {n}" for t, n in self.message_counts.items()) or "none"
-        lines.append(f"  kept   : {self.message_count} messages ({counts}); "
-                     f"{self.kept_bytes} of {self.file_size} bytes")
-        if self.damage_offset is not None:
-            lines.append(f"  damage : at byte offset {self.damage_offset}: {self.damage_reason}")
+        lines.append(f"  kept   : {self.message_count} messages ({counts}) from "
+                     f"{self.chunks_kept} intact chunks; {self.kept_bytes} of "
+                     f"{self.file_size} bytes")
+        if self.damage:
+            bound = "" if self.lost_exact else "at least "
+            lines.append(f"  damage : {len(self.damage)} damaged range(s), {bound}"
+                         f"{self.chunks_lost} chunk(s) lost:")
+            for item in self.damage:
+                lines.append(f"           at byte offset {item.start} (to {item.end}, "
+                             f"{item.size} bytes): {item.reason}")
         elif self.finished:
             lines.append("  damage : none (the file was finished; its summary was rebuilt)")
         else:
-            lines.append(f"  damage : none; the file ends at byte offset {self.kept_bytes} "
+            lines.append(f"  damage : none; the file ends at byte offset {self.file_size} "
                          "without its summary (the writer was killed between chunks; what it "
                          "had not yet written - at most one chunk or flush_period - never "
                          "reached the file)")
-        lost = (f"{self.lost_messages} messages" if self.lost_messages is not None
-                else "an unknown number of messages" if self.lost_bytes else "no messages")
-        span = ""
-        if self.lost_span_ns is not None:
-            start, end = self.lost_span_ns
-            span = f", logged {start / 1e9:.3f} .. {end / 1e9:.3f} s (epoch)"
-        lines.append(f"  lost   : {lost}, {self.lost_bytes} bytes{span}")
+        if self.lost_messages or self.damage:
+            per_topic = ", ".join(f"{t}: {n}" for t, n in self.lost_counts.items())
+            how = ("exact, from the source's summary" if self.lost_exact else
+                   "at least; the source has no readable summary, so messages of damaged "
+                   "chunks whose message indexes were lost too are not counted")
+            lost = f"{self.lost_messages} messages ({per_topic or 'none'}; {how})"
+        else:
+            lost = "no messages"
+        spans = ""
+        if self.lost_spans_ns:
+            spans = ", logged " + ", ".join(f"{a / 1e9:.3f} .. {b / 1e9:.3f} s"
+                                            for a, b in self.lost_spans_ns[:5]) + " (epoch)"
+        lines.append(f"  lost   : {lost}, {self.lost_bytes} bytes{spans}")
+        if self.undecodable:
+            lines.append("  note   : " + ", ".join(
+                f"{n} intact messages of {c}" for c, n in self.undecodable.items()) +
+                " could not be kept: their channel definition was lost with a damaged chunk "
+                "and the source has no readable summary")
+        if self.definitions_from_summary:
+            lines.append("  note   : channel definitions of " + ", ".join(
+                self.definitions_from_summary) + " were lost with a damaged chunk and taken "
+                "from the source's summary")
         return "\n".join(lines)
 
 
@@ -175,87 +231,131 @@ def recover_bag(source: str | os.PathLike[str],
     if destination.exists():
         raise BagRecoveryError(f"{destination} already exists; choose another destination")
     file_size = mcap_path.stat().st_size
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    added: set[int] = set()
-    metadata: list[Metadata] = []
-    damage: McapDamageError | None = None
-    end: ScanEnd | None = None
     with open(mcap_path, "rb") as stream:
-        if stream.read(len(MAGIC)) != MAGIC:
+        if stream.read(8) != b"\x89MCAP0\r\n":
             raise BagRecoveryError(f"{mcap_path} is not an MCAP file (no MCAP magic at its "
                                    "start); nothing to recover")
+    scan = McapScan(mcap_path)
+    copier = _Copier()
     writer = SessionBagWriter(destination)
     writer.start()
     try:
-        records = scan_records(mcap_path)
-        while True:
-            try:
-                item = next(records)
-            except StopIteration as stop:
-                end = stop.value
-                break
-            except McapDamageError as err:
-                damage = err
-                break
-            _copy(item.record, writer, schemas, channels, added, metadata)
-        if damage is not None:
-            kept_bytes = damage.offset
-        else:  # a finished file's summary is rebuilt, not lost
-            kept_bytes = file_size if end.finished else end.offset
-        stats = summary_statistics(mcap_path) if damage is not None else None
-        counts = writer.message_counts
-        report = RecoveryReport(
-            source=mcap_path, destination=destination, file_size=file_size,
-            kept_bytes=kept_bytes, message_counts=counts,
-            finished=end.finished if end is not None else False,
-            damage_offset=damage.offset if damage is not None else None,
-            damage_reason=damage.reason if damage is not None else "",
-            lost_messages=(max(int(stats.message_count) - sum(counts.values()), 0)
-                           if stats is not None else (0 if damage is None else None)),
-            lost_span_ns=damage.chunk_span_ns if damage is not None else None)
-        for item in metadata:
+        for item in scan:
+            copier.copy(item.record, writer, from_summary=item.from_summary)
+        summary = scan.summary if (scan.damage or scan.orphans or copier.undecodable) \
+            else McapSummary()
+        report = _report(scan, summary, copier, mcap_path, destination, file_size,
+                         writer.message_counts)
+        for item in copier.metadata:
             writer.add_metadata(item.name, item.metadata)
         writer.add_metadata(RECOVERY_METADATA_RECORD, {
             "source": str(mcap_path), "file_size": str(file_size),
-            "kept_bytes": str(kept_bytes),
-            "damage_offset": "" if damage is None else str(damage.offset),
+            "kept_bytes": str(report.kept_bytes),
+            "damage_offset": "" if report.damage_offset is None else str(report.damage_offset),
             "damage_reason": report.damage_reason,
-            "lost_messages": "" if report.lost_messages is None else str(report.lost_messages),
+            "damaged_ranges": json.dumps([[d.start, d.end, d.reason] for d in report.damage]),
+            "chunks_lost": str(report.chunks_lost),
+            "lost_messages": str(report.lost_messages),
+            "lost_messages_exact": "true" if report.lost_exact else "false",
+            "lost_by_topic": json.dumps(report.lost_counts),
         })
     finally:
         writer.finish()
     return report
 
 
-def _copy(record: object, writer: SessionBagWriter, schemas: dict[int, Schema],
-          channels: dict[int, Channel], added: set[int], metadata: list[Metadata]) -> None:
-    """Hand one scanned record to the writer (channels are added at their first message)."""
-    if isinstance(record, Schema):
-        schemas[record.id] = record
-    elif isinstance(record, Channel):
-        channels[record.id] = record
-    elif isinstance(record, Message):
-        channel = channels.get(record.channel_id)
-        if channel is None:
-            return  # a message of a channel never defined: cannot be decoded, left out
-        if record.channel_id not in added:
-            _add_channel(channel, schemas.get(channel.schema_id), writer)
-            added.add(record.channel_id)
-        writer.write(channel.topic, record.data, log_time_ns=record.log_time,
-                     publish_time_ns=record.publish_time, sequence=record.sequence)
-    elif isinstance(record, Metadata) and record.name != ROSBAG2_METADATA_RECORD:
-        if record.name != RECOVERY_METADATA_RECORD:
-            metadata.append(record)
-    elif isinstance(record, Attachment):
-        pass  # fingerps bags carry none
+def _report(scan: McapScan, summary: McapSummary, copier: _Copier, mcap_path: Path,
+            destination: Path, file_size: int, counts: dict[str, int]) -> RecoveryReport:
+    """Work out what was lost from the scan, the source's summary and what was copied."""
+    topics = {cid: ch.topic for cid, ch in summary.channels.items()}
+    topics.update(scan.orphan_topics)
+    topics.update(copier.topics)
+
+    def name(channel_id: int) -> str:
+        return topics.get(channel_id, f"channel {channel_id}")
+
+    lost: dict[str, int] = {}
+    stats = summary.statistics
+    exact = stats is not None or not (scan.damage or scan.orphans or copier.undecodable)
+    if stats is not None:
+        for channel_id, total in sorted(stats.channel_message_counts.items()):
+            missing = total - copier.kept.get(channel_id, 0)
+            if missing > 0:
+                lost[name(channel_id)] = lost.get(name(channel_id), 0) + missing
+    else:
+        sources = [d.lost_by_channel for d in scan.damage] + [scan.orphans, copier.undecodable]
+        for per_channel in sources:
+            for channel_id, n in per_channel.items():
+                lost[name(channel_id)] = lost.get(name(channel_id), 0) + n
+    undecodable: dict[str, int] = {}
+    for per_channel in (scan.orphans, copier.undecodable):
+        for channel_id, n in per_channel.items():
+            undecodable[name(channel_id)] = undecodable.get(name(channel_id), 0) + n
+    in_damage = [c for c in summary.chunk_indexes
+                 if any(d.start <= c.chunk_start_offset < d.end for d in scan.damage)]
+    if summary.chunk_indexes:
+        chunks_lost = len(in_damage)
+        spans = tuple((c.message_start_time, c.message_end_time) for c in in_damage)
+    else:
+        chunks_lost = sum(1 for d in scan.damage
+                          if d.opcode == 0x06 or d.lost_by_channel)  # 0x06: Chunk
+        spans = tuple(d.span_ns for d in scan.damage if d.span_ns is not None)
+    return RecoveryReport(
+        source=mcap_path, destination=destination, file_size=file_size,
+        message_counts=counts, finished=scan.finished, damage=tuple(scan.damage),
+        lost_counts=lost, lost_exact=exact, chunks_kept=scan.chunks_read,
+        chunks_lost=chunks_lost, summary_source=summary.source,
+        definitions_from_summary=tuple(copier.from_summary), lost_spans_ns=spans,
+        undecodable=undecodable)
 
 
-def _add_channel(channel: Channel, schema: Schema | None, writer: SessionBagWriter) -> None:
-    if schema is None:
-        raise BagRecoveryError(
-            f"channel {channel.topic} refers to schema {channel.schema_id}, which is not in "
-            "the file; this is not a ROS 2 bag fingerps can recover")
+class _Copier:
+    """Hands scanned records to the writer (channels are added at their first message) and
+    counts what it kept per channel id."""
+
+    def __init__(self) -> None:
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.added: set[int] = set()
+        self.metadata: list[Metadata] = []
+        self.kept: dict[int, int] = {}
+        self.undecodable: dict[int, int] = {}
+        self.topics: dict[int, str] = {}
+        self.from_summary: list[str] = []
+
+    def copy(self, record: object, writer: SessionBagWriter, *, from_summary: bool) -> None:
+        if isinstance(record, Schema):
+            self.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            self.channels[record.id] = record
+            self.topics[record.id] = record.topic
+            if from_summary:
+                self.from_summary.append(record.topic)
+        elif isinstance(record, Message):
+            channel = self.channels.get(record.channel_id)
+            if channel is None:  # McapScan yields no such message; counted all the same
+                self.undecodable[record.channel_id] = \
+                    self.undecodable.get(record.channel_id, 0) + 1
+                return
+            if record.channel_id not in self.added:
+                schema = self.schemas.get(channel.schema_id)
+                if schema is None:
+                    self.undecodable[record.channel_id] = \
+                        self.undecodable.get(record.channel_id, 0) + 1
+                    return
+                _add_channel(channel, schema, writer)
+                self.added.add(record.channel_id)
+            writer.write(channel.topic, record.data, log_time_ns=record.log_time,
+                         publish_time_ns=record.publish_time, sequence=record.sequence)
+            self.kept[record.channel_id] = self.kept.get(record.channel_id, 0) + 1
+        elif isinstance(record, Metadata) and record.name not in (
+                ROSBAG2_METADATA_RECORD, RECOVERY_METADATA_RECORD):
+            self.metadata.append(record)
+        elif isinstance(record, Attachment):
+            pass  # fingerps bags carry none
+
+
+def _add_channel(channel: Channel, schema: Schema, writer: SessionBagWriter) -> None:
     definition = MessageDefinition(schema.name, schema.encoding,
                                    schema.data.decode("utf-8", errors="replace"))
     try:
