@@ -100,3 +100,16 @@ def test_bad_input_is_one_line_and_exit_code_2(folder: Path, tmp_path: Path, cap
     assert main([str(bag), "--out", str(tmp_path / "o3")]) == 2
     err = capsys.readouterr().err
     assert "no light calibration" in err and "--calibration" in err
+
+
+def test_the_sweep_runs_after_this_process_used_the_parallel_kernels(
+        folder: Path, tmp_path: Path) -> None:
+    # numba's worker threads, once started here, do not survive a fork(): the sweep's worker
+    # processes must be fresh interpreters (before: BrokenProcessPool).
+    from fingerps_recon.kernel_warm_up import warm_up_kernels
+
+    warm_up_kernels()  # every parallel kernel has run in this process now
+    out = tmp_path / "tune"
+    assert main([str(folder), "--out", str(out), "--model", "lambert,hk", "--w", "5",
+                 "--k", "1", "--jobs", "2"]) == 0
+    assert len(list(csv.DictReader(open(out / "summary.csv")))) == 2

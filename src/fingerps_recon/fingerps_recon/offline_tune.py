@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import multiprocessing
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -218,7 +219,10 @@ def run_sweep(bursts: list[BurstInput], settings: list[Setting], out: Path, *,
     work = [(b, m) for b in bursts for m in models]
     rows: list[Row] = []
     _progress(0, len(work))
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    # Fresh interpreters, not forks: numba's worker threads do not survive fork() in a
+    # process that has used them (the child dies), and neither do rclpy's.
+    with ProcessPoolExecutor(max_workers=jobs,
+                             mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(_job, b, m, settings, str(out)) for b, m in work]
         for done, future in enumerate(as_completed(futures), start=1):
             rows.extend(future.result())
