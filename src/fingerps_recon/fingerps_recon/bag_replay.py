@@ -15,7 +15,8 @@ subscribers have matched (a volatile topic's messages published before would be 
 
 The bag is read with `fingerps_recon.bag_reader.SessionBagReader`: a bag recorded with
 another version of our messages is refused (exit code 1 and one line), a damaged bag is
-played up to the damage (then an error naming the offset, exit code 1).
+played whole but for its damaged chunks (then an error naming the damaged byte ranges,
+exit code 1).
 
 Threads: the executor spins the node; one worker thread reads and publishes. With
 ``exit_when_done`` the node shuts down once the last message is out.

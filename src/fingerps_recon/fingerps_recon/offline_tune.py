@@ -110,7 +110,7 @@ def bursts_from_bag(path: Path, *, calibration: Path | None,
     from fingerps_recon.bag_reader import SessionBagReader
     from fingerps_recon.image_conversion import image_to_array
 
-    reader = SessionBagReader(path)
+    reader = SessionBagReader(path, raise_on_damage=False)  # tune on what is intact
     types = reader.topics()
     lights_msg = flat_msg = None
     raw = []
@@ -121,6 +121,10 @@ def bursts_from_bag(path: Path, *, calibration: Path | None,
             flat_msg = message
         elif message.type_name == BURST_TYPE and (limit is None or len(raw) < limit):
             raw.append(message)
+    for damaged in reader.damage:
+        print(f"{_PROG}: warning: {path}: bytes {damaged.start}..{damaged.end} damaged "
+              f"({damaged.reason}); tuning on the intact messages (bag_recover repairs it)",
+              file=sys.stderr)
     if not raw:
         raise FingerpsReconError(f"{path} holds no {BURST_TYPE} messages (topics: "
                                  f"{', '.join(types) or 'none'})")
