@@ -250,3 +250,60 @@ def test_a_burst_of_another_size_than_the_prepared_calibration_is_refused(
                                    shape=burst.images.shape[1:])
     with pytest.raises(FingerpsReconError, match=r"recalibrate .* for this image size"):
         reconstruct_prepared(burst.images[:, :-2, :], prepared, full_scale=FULL_SCALE)
+
+
+def _degenerate_inputs(rig: SimulatedRig, shape: tuple[int, int]) -> dict[str, dict]:
+    """prepare_calibration's keyword arguments (besides the defaults) that cannot give
+    normals; each gave an empty or NaN reconstruction counted as a success before."""
+    lights = rig.light_directions_ps()
+    zero = lights.copy()
+    zero[0] = 0.0
+    coplanar = lights * [1.0, 1.0, 0.0]
+    coplanar /= np.linalg.norm(coplanar, axis=1, keepdims=True)
+    nan_portions = np.ones((rig.led_count, *shape), np.float32)
+    nan_portions[2, 10, 10] = np.nan
+    leds = rig.led_positions_optical
+    return {
+        "zero direction": {"lights_ps": zero},
+        "parallel directions": {"lights_ps": np.repeat(lights[:1], rig.led_count, axis=0)},
+        "coplanar directions": {"lights_ps": coplanar},
+        "non-unit directions": {"lights_ps": lights * 0.5},
+        "NaN direction": {"lights_ps": np.where(zero == 0.0, np.nan, lights)},
+        "two lights": {"lights_ps": lights[:2]},
+        "NaN intensities": {"intensities": np.full(rig.led_count, np.nan)},
+        "NaN intensities with LED positions and flat field": {
+            "intensities": np.full(rig.led_count, np.nan), "led_positions_optical": leds,
+            "portions": np.ones((rig.led_count, *shape), np.float32)},
+        "zero intensity": {"intensities": np.r_[0.0, np.ones(rig.led_count - 1)]},
+        "intensities of another count": {"intensities": np.ones(3)},
+        "NaN flat-field maps": {"portions": nan_portions},
+        "NaN flat-field maps with LED positions": {"portions": nan_portions,
+                                                   "led_positions_optical": leds},
+        "negative flat-field map": {"portions": -np.ones((rig.led_count, *shape))},
+        "flat-field maps of another size": {
+            "portions": np.ones((rig.led_count, shape[0] - 1, shape[1]), np.float32)},
+        "LEDs at one point": {"led_positions_optical": np.repeat(leds[:1], 7, axis=0)},
+        "LEDs beyond the working distance": {"led_positions_optical": leds + np.array([0, 0, 0.1])},
+        "NaN camera matrix": {"camera_matrix": np.full((3, 3), np.nan)},
+        "camera matrix with fy < 0": {"camera_matrix": rig.camera_matrix * [1, -1, 1]},
+    }
+
+
+@pytest.mark.parametrize("case", list(_degenerate_inputs(SimulatedRig(), (493, 659))))
+def test_a_degenerate_calibration_is_refused_where_it_is_prepared(
+        rig: SimulatedRig, burst: Burst, case: str) -> None:
+    shape = burst.images.shape[1:]
+    kwargs = {"lights_ps": rig.light_directions_ps(), "camera_matrix": rig.camera_matrix,
+              **_degenerate_inputs(rig, shape)[case]}
+    with pytest.raises(FingerpsReconError) as info:
+        prepare_calibration(kwargs.pop("lights_ps"), shape=shape, **kwargs)
+    assert "\n" not in str(info.value)  # one line, even for arrays
+
+
+def test_empty_images_are_refused_not_crashed_on(rig: SimulatedRig, burst: Burst) -> None:
+    prepared = prepare_calibration(rig.light_directions_ps(), camera_matrix=rig.camera_matrix,
+                                   shape=burst.images.shape[1:])
+    for shape in ((0, 0), (0, 5), (5, 0)):
+        with pytest.raises(FingerpsReconError, match="empty"):  # was ValueError: zero-size
+            reconstruct_prepared(np.zeros((rig.led_count, *shape), np.uint8), prepared,
+                                 full_scale=FULL_SCALE)

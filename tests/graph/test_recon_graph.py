@@ -8,6 +8,13 @@ the burst's header; refuse, without outputs, a burst that lacks an LED's frame (
 (``bursts_failed``); keep running
 and reconstruct the next good burst; and stop cleanly on SIGINT.
 
+Every malformed input (issue 11): bursts of 0x0 or 0-wide images, beyond the size bounds,
+with too many frames, step and data that disagree, duplicate or unknown LED indices, float
+images with NaN, a NaN dark frame; degenerate light calibrations (a zero direction,
+parallel directions, NaN intensities with LED positions), NaN flat-field maps, flat maps of
+another size. recon_node must keep running, count each, go WARN/ERROR and back to OK once
+good bursts flow, reconstruct the good bursts, and print no traceback.
+
 Bound on the normals' mean angular error: 3.5 deg, as in tests/core/test_pipeline.py (the
 same data through the same pipeline measures 3.21 deg; through the node the relative
 intensities are scaled to a maximum of 1, which leaves the directions unchanged).
@@ -22,13 +29,13 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Vector3
+from geometry_msgs.msg import Point, Vector3
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 
 from fingerps_driver.simulation import FingerTruth, Scene, SimulatedRig
-from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
+from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_recon import qos, topics
 from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.frames import optical_to_ps, ps_to_optical
@@ -206,3 +213,189 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     assert recon.wait() == 0, recon.output
     assert "Traceback" not in recon.output
     assert "missing [3]" in recon.output  # the refusal was logged with its reason
+
+
+def _status(arrays: list[DiagnosticArray]) -> tuple[int, dict[str, str]] | None:
+    """The level and values of recon's latest status, or None before the first."""
+    found = [status for array in arrays for status in array.status
+             if status.name.startswith("recon")]
+    if not found:
+        return None
+    last = found[-1]
+    return int.from_bytes(last.level, "little"), {kv.key: kv.value for kv in last.values}
+
+
+def _flat(maps: np.ndarray) -> FlatField:
+    return FlatField(header=Header(frame_id=FRAME_ID), camera_name="graph_test",
+                     maps=[array_to_image(m, encoding="32FC1") for m in maps],
+                     relative_intensities=[1.0] * len(maps))
+
+
+def _malformed_bursts(rig: SimulatedRig, images: np.ndarray) -> dict[str, tuple[str, Burst]]:
+    """name -> (the counter that must count it, the burst); burst ids from 100."""
+    count = rig.led_count
+    made: dict[str, tuple[str, Burst]] = {}
+
+    def add(name: str, counter: str, burst: Burst) -> None:
+        made[name] = (counter, burst)
+
+    add("0x0 images", "bursts_rejected",
+        _burst(rig, np.zeros((count, 0, 0), np.uint8), 100))
+    add("0-wide images", "bursts_rejected",
+        _burst(rig, np.zeros((count, 16, 0), np.uint8), 101))
+    add("images wider than max_image_width", "bursts_rejected",
+        _burst(rig, np.full((count, 1, 4097), 200, np.uint8), 102))
+    huge = _burst(rig, images, 103)
+    for frame in huge.frames:  # a header claiming 7 x 100000^2 px over a few bytes
+        frame.image = Image(height=100_000, width=100_000, encoding="mono8", step=100_000,
+                            data=bytes(64))
+    add("a 100000x100000 header over 64 bytes", "bursts_rejected", huge)
+    add("more frames than max_burst_frames", "bursts_rejected",
+        _burst(rig, np.concatenate([images] * 3), 104))
+    short = _burst(rig, images, 105)
+    short.frames[2].image.data = bytes(short.frames[2].image.data)[:-10]
+    add("data shorter than step x height", "bursts_failed", short)
+    stepped = _burst(rig, images, 106)
+    stepped.frames[4].image.step = stepped.frames[4].image.width - 3
+    add("step shorter than a row", "bursts_failed", stepped)
+    floats = images.astype(np.float32)
+    floats[:, 5, 5], floats[:, 6, 6] = np.nan, np.inf
+    add("float images with NaN and inf", "bursts_failed",
+        _burst(rig, floats, 107, encoding="32FC1"))
+    nan_dark = _burst(rig, images, 108)
+    dark = np.full(images.shape[1:], np.nan, np.float32)
+    nan_dark.has_dark_frame = True
+    nan_dark.dark_frame = TaggedFrame(header=nan_dark.header, burst_id=108,
+                                      image=array_to_image(dark, encoding="32FC1"))
+    add("a NaN 32FC1 dark frame", "bursts_failed", nan_dark)
+    add("duplicate LED indices", "bursts_incomplete",
+        _burst(rig, images, 109, leds=[0, 1, 2, 3, 4, 5, 5]))
+    unknown = _burst(rig, images, 110)
+    unknown.frames[6].led_index = 77
+    add("an unknown LED index", "bursts_incomplete", unknown)
+    return made
+
+
+def test_recon_node_survives_every_malformed_input(
+        ros_node: Node, start_node, spin_until, rig: SimulatedRig,
+        images: np.ndarray) -> None:
+    lights_pub = ros_node.create_publisher(
+        LightCalibration, f"{NS}/{topics.LIGHT_CALIBRATION}", qos.CALIBRATION_QOS)
+    flat_pub = ros_node.create_publisher(FlatField, f"{NS}/{topics.FLAT_FIELD}",
+                                         qos.CALIBRATION_QOS)
+    good_lights = _calibration(rig)
+    lights_pub.publish(good_lights)
+    burst_pub = ros_node.create_publisher(Burst, f"{NS}/{topics.BURST}", qos.BURST_QOS)
+    received: dict[tuple[int, int], int] = defaultdict(int)  # outputs per burst stamp
+    subscriptions = []
+    for name, msg_type in OUTPUTS.items():
+        def store(msg, name=name) -> None:
+            received[_key(msg.header)] += 1
+        subscriptions.append(ros_node.create_subscription(
+            msg_type, f"{NS}/{name}", store, qos.OUTPUT_QOS))
+    diagnostics: list[DiagnosticArray] = []
+    ros_node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diagnostics.append, 10)
+
+    def level_and(check) -> bool:
+        status = _status(diagnostics)
+        return status is not None and check(*status)
+
+    def until_status(check, what: str, timeout: float) -> None:
+        try:
+            spin_until(lambda: level_and(check), what, timeout=timeout)
+        except pytest.fail.Exception:
+            pytest.fail(f"waiting for {what}; last status {_status(diagnostics)}; recon's "
+                        f"output:\n{recon.output[-4000:]}")
+
+    recon = start_node("fingerps_recon", "recon_node", "--ros-args", "-p", "queue_depth:=16",
+                       "-p", "health_window:=3")
+    recon.wait_in_graph(ros_node, "recon", NS)
+    spin_until(lambda: burst_pub.get_subscription_count() >= 1
+               and flat_pub.get_subscription_count() >= 1
+               and all(s.get_publisher_count() >= 1 for s in subscriptions),
+               "recon's subscriptions and output publishers")
+    until_status(lambda level, v: v["ready"] == v["calibrated"] == "True" and level == 0,
+                 "recon ready, calibrated and OK", timeout=30.0)
+
+    # 1. Malformed bursts: each counted, none reconstructed, ERROR (the last 3 all failed).
+    expected: dict[str, int] = defaultdict(int)
+    for name, (counter, burst) in _malformed_bursts(rig, images).items():
+        burst_pub.publish(burst)  # one at a time (the burst topic keeps 4): each counted
+        expected[counter] += 1
+
+        def counted(level: int, values: dict[str, str]) -> bool:
+            return all(int(values[c]) == n for c, n in expected.items())
+        until_status(counted, f"recon counting {name} in {counter} ({dict(expected)})",
+                     timeout=10.0)
+    until_status(lambda level, v: level == 2,
+                 "diagnostics level ERROR after the malformed bursts", timeout=5.0)
+    _, values = _status(diagnostics)
+    assert values["bursts_done"] == "0" and values["bursts_dropped"] == "0", values
+    assert values["unexpected_errors"] == "0", values
+    assert not received, received
+    assert recon.running(), recon.output
+
+    # 2. Degenerate calibrations: each refused on arrival (the good one stays in force).
+    lights = rig.light_directions_ps()
+    zero = lights.copy()
+    zero[3] = 0.0
+    nan_with_leds = _calibration(rig)
+    nan_with_leds.relative_intensities = [float("nan")] * rig.led_count
+    nan_with_leds.led_positions = [Point(x=float(x), y=float(y), z=float(z))
+                                   for x, y, z in rig.led_positions_optical]
+    parallel = _calibration(rig)
+    parallel.directions = [parallel.directions[0]] * rig.led_count
+    zero_msg = _calibration(rig)
+    zero_msg.directions = [Vector3(x=float(x), y=float(y), z=float(z))
+                           for x, y, z in ps_to_optical(zero)]
+    nan_maps = np.ones(images.shape, np.float32)
+    nan_maps[:, 100:200, 100:200] = np.nan
+    refusals = [(lights_pub, zero_msg), (lights_pub, parallel), (lights_pub, nan_with_leds),
+                (flat_pub, _flat(nan_maps))]
+    for n, (publisher, msg) in enumerate(refusals, start=1):
+        publisher.publish(msg)  # one at a time: the calibration topics keep the last only
+        until_status(lambda level, v, n=n: int(v["calibrations_refused"]) == n,
+                     f"recon refusing degenerate calibration {n}", timeout=10.0)
+    # Flat maps of another size: taken, but a burst of the camera's size cannot use them.
+    flat_pub.publish(_flat(np.ones((rig.led_count, 20, 30), np.float32)))
+    spin_until(lambda: "flat field received: 7 maps (20, 30)" in recon.output,
+               "recon taking the small flat field", timeout=10.0)
+
+    # 3. A good burst: reconstructed without the flat field (counted); WARN, not ERROR.
+    good = _burst(rig, images, 200)
+    burst_pub.publish(good)
+    spin_until(lambda: received[_key(good.header)] == len(OUTPUTS),
+               "the outputs of the good burst after the malformed inputs", timeout=30.0)
+    until_status(lambda level, v: level == 1 and v["bursts_done"] == "1"
+                 and v["bursts_without_flat_field"] == "1",
+                 "diagnostics WARN with the good burst done without the flat field",
+                 timeout=5.0)
+
+    # 4. Good calibrations again and good bursts flowing: back to OK.
+    lights_pub.publish(good_lights)
+    flat_pub.publish(_flat(np.ones(images.shape, np.float32)))
+    spin_until(lambda: recon.output.count("flat field received: 7 maps") == 2,
+               "recon taking the flat field of the camera's size", timeout=10.0)
+    spin_until(lambda: recon.output.count("light calibration received") == 2,
+               "recon taking the good light calibration again", timeout=10.0)
+    more = [_burst(rig, images, 201 + i) for i in range(3)]
+    for burst in more:
+        burst_pub.publish(burst)
+    spin_until(lambda: all(received[_key(b.header)] == len(OUTPUTS) for b in more),
+               "the outputs of the good bursts", timeout=30.0)
+    until_status(lambda level, v: level == 0 and v["bursts_done"] == "4",
+                 "diagnostics back to OK once good bursts flow", timeout=5.0)
+    _, values = _status(diagnostics)
+    assert values["bursts_without_flat_field"] == "1", values
+    assert values["unexpected_errors"] == "0", values
+    assert set(received) == {_key(b.header) for b in [good, *more]}, set(received)
+
+    assert recon.running(), recon.output
+    recon.send_signal(signal.SIGINT)
+    assert recon.wait() == 0, recon.output
+    output = recon.output
+    assert "Traceback" not in output and "zero-size array" not in output, output
+    for needle in ("empty", "beyond max_image_width", "max_burst_frames", "too few",
+                   "one grey level", "dark frame", "missing", "light calibration refused",
+                   "flat field refused", "not unit", "parallel", "intensities", "not used"):
+        assert needle in output, f"{needle!r} not logged:\n{output}"

@@ -105,7 +105,10 @@ def images_to_array(msgs: Sequence[Image]) -> np.ndarray:
             f"images of different encodings or sizes {sorted(kinds)} (encoding, height, "
             "width) cannot be stacked; every image must come from one camera mode")
     dtype, channels = _encoding(msgs[0].encoding)
+    # Every message checked (height, step and data length agree) before the stack is
+    # allocated: a header claiming a huge image over little data allocates nothing.
+    pixels = [_pixels(msg) for msg in msgs]
     stack = np.empty((len(msgs), msgs[0].height, msgs[0].width, channels), dtype=dtype)
-    for k, msg in enumerate(msgs):
-        stack[k] = _pixels(msg)
+    for k, view in enumerate(pixels):
+        stack[k] = view
     return stack[..., 0] if channels == 1 else stack

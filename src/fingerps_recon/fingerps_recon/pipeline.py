@@ -42,6 +42,16 @@ from fingerps_recon.pixel_rays import near_light_directions_ps, view_directions_
 # Smallest cosine between a near light and the white target's normal used to turn the
 # target's brightness into irradiance (a steeper light would amplify the target's noise).
 _MIN_TARGET_COSINE = 0.05
+# A calibration's light directions must be unit vectors to this tolerance.
+_UNIT_TOLERANCE = 1e-3
+# Smallest ratio of the light matrix's singular values (smallest / largest) accepted: below
+# it the directions are (nearly) coplanar or parallel and the normals are not determined
+# (the simulated rig's ratio is 0.31).
+_MIN_LIGHT_CONDITION = 0.02
+
+
+class NoFingerError(FingerpsReconError):
+    """The burst shows nothing to reconstruct (the finger mask selects nothing)."""
 
 
 class Model(Enum):
@@ -140,22 +150,35 @@ def prepare_calibration(
 ) -> PreparedCalibration:
     """Prepare a calibration for bursts of ``shape`` (see :func:`reconstruct` for the
     parameters): the near-light directions and irradiance, the flat-field gain (Eq. 11) and
-    the view directions. Raises ``FingerpsReconError`` on inconsistent inputs."""
+    the view directions. Raises ``FingerpsReconError`` on inconsistent or degenerate inputs
+    (a camera matrix that is not finite with fx, fy > 0; :func:`check_calibration`;
+    :func:`check_portions`; LEDs that do not span 3D from the image centre), so that a bad
+    calibration is refused where it is used instead of giving empty reconstructions."""
     h, w = (int(v) for v in shape)
     if h < 1 or w < 1:
         raise FingerpsReconError(f"image size must be at least 1 x 1, got {w} x {h}")
     k_matrix = np.asarray(camera_matrix, dtype=np.float64)
-    lights = np.asarray(lights_ps, dtype=np.float64)
-    if lights.ndim != 2 or lights.shape[1] != 3:
-        raise FingerpsReconError(f"light directions must be (K, 3), got {lights.shape}")
-    count = lights.shape[0]
-    if portions is not None and np.shape(portions) != (count, h, w):
+    if (k_matrix.shape != (3, 3) or not np.isfinite(k_matrix).all()
+            or not (k_matrix[0, 0] > 0 and k_matrix[1, 1] > 0)):
         raise FingerpsReconError(
-            f"flat-field maps {np.shape(portions)} do not fit the images {(count, h, w)}; "
-            "recalibrate the flat field for this camera mode")
+            "the camera matrix must be a finite 3x3 K with fx, fy > 0 (got "
+            f"{np.array2string(k_matrix.reshape(-1), precision=4, max_line_width=10**6)}); "
+            "calibrate the camera (camera_info)")
+    lights = np.asarray(lights_ps, dtype=np.float64)
+    check_calibration(lights, intensities=intensities,
+                      led_positions_optical=led_positions_optical)
+    count = lights.shape[0]
+    if portions is not None:
+        if np.shape(portions) != (count, h, w):
+            raise FingerpsReconError(
+                f"flat-field maps {np.shape(portions)} do not fit the images {(count, h, w)}; "
+                "recalibrate the flat field for this camera mode")
+        check_portions(portions)
     light_power = None if intensities is None else np.asarray(intensities, dtype=np.float64)
     flat_gain = None
     if led_positions_optical is not None:
+        _check_near_lights(np.asarray(led_positions_optical, dtype=np.float64), k_matrix,
+                           (h, w), options.working_distance_m)
         lights = near_light_directions_ps(
             led_positions_optical, camera_matrix=k_matrix, shape=(h, w),
             working_distance_m=options.working_distance_m)
@@ -265,7 +288,7 @@ def reconstruct_prepared(
         np.copyto(stack, np.float32(limit), where=saturated)
     mask = np.asarray(mask, dtype=bool)
     if not mask.any():
-        raise FingerpsReconError(
+        raise NoFingerError(
             "no finger in the burst (the mask selects nothing): place a finger in view, or "
             "lower mask_threshold if it is there but dim")
     timings["prepare"] = (time.perf_counter() - t0) * 1e3
@@ -306,6 +329,99 @@ def reconstruct_prepared(
         hk_scale=hk_scale, residual=residual, timings_ms=timings)
 
 
+def check_calibration(
+    lights_ps: np.ndarray,
+    *,
+    intensities: np.ndarray | None = None,
+    led_positions_optical: np.ndarray | None = None,
+) -> None:
+    """Raise ``FingerpsReconError`` unless a light calibration can determine normals: at
+    least 3 finite unit directions (K, 3) that are neither parallel nor coplanar, finite
+    positive relative intensities (K,), finite LED positions (K, 3) in metres. Cheap (no
+    per-pixel work); :func:`prepare_calibration` calls it, and a node can call it when a
+    calibration arrives."""
+    lights = np.asarray(lights_ps, dtype=np.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3 or lights.shape[0] < 3:
+        raise FingerpsReconError(
+            f"light directions must be (K, 3) with K >= 3, got {lights.shape}; recalibrate "
+            "the lights")
+    count = lights.shape[0]
+    if not np.isfinite(lights).all():
+        raise FingerpsReconError(
+            "light directions contain NaN or infinite values; recalibrate the lights")
+    norms = np.linalg.norm(lights, axis=1)
+    off = np.flatnonzero(np.abs(norms - 1.0) > _UNIT_TOLERANCE)
+    if off.size:
+        raise FingerpsReconError(
+            f"light direction(s) of LED {', '.join(str(int(k)) for k in off)} are not unit "
+            f"vectors (lengths {', '.join(f'{norms[k]:.3g}' for k in off)}); recalibrate the "
+            "lights")
+    _check_conditioned(lights, "light directions")
+    if intensities is not None:
+        power = np.asarray(intensities, dtype=np.float64)
+        if power.shape != (count,) or not np.isfinite(power).all() or not np.all(power > 0):
+            raise FingerpsReconError(
+                f"relative intensities must be {count} finite values > 0, got "
+                f"{np.array2string(power, precision=3, max_line_width=10**6)}; recalibrate "
+                "the flat field")
+    if led_positions_optical is not None:
+        leds = np.asarray(led_positions_optical, dtype=np.float64)
+        if leds.shape != (count, 3) or not np.isfinite(leds).all():
+            raise FingerpsReconError(
+                f"LED positions must be {count} finite points (K, 3) in metres, got shape "
+                f"{leds.shape}{'' if leds.shape != (count, 3) else ' with NaN or inf'}; "
+                "recalibrate the lights")
+
+
+def check_portions(portions: np.ndarray) -> None:
+    """Raise ``FingerpsReconError`` unless flat-field portion maps (K, H, W) are finite,
+    non-negative and each has a positive maximum (paper Eq. 11: p_k in (0, 1]). One pass
+    over the maps: call it once per flat field, not per burst."""
+    p = np.asarray(portions)
+    if p.ndim != 3 or min(p.shape) < 1:
+        raise FingerpsReconError(
+            f"flat-field maps must be (K, H, W) with H, W >= 1, got {p.shape}")
+    flat = p.reshape(p.shape[0], -1)
+    if not np.isfinite(flat).all():
+        raise FingerpsReconError(
+            "flat-field maps contain NaN or infinite values; recalibrate the flat field")
+    low, high = flat.min(axis=1), flat.max(axis=1)
+    bad = np.flatnonzero((low < 0) | (high <= 0))
+    if bad.size:
+        raise FingerpsReconError(
+            f"flat-field map(s) of LED {', '.join(str(int(k)) for k in bad)} are negative or "
+            "all zero (portions must be in (0, 1]); recalibrate the flat field")
+
+
+def _check_conditioned(lights: np.ndarray, what: str) -> None:
+    """Raise unless the (K, 3) unit directions span 3D (not parallel, not coplanar)."""
+    singular = np.linalg.svd(lights, compute_uv=False)
+    if not singular[-1] > _MIN_LIGHT_CONDITION * singular[0]:
+        raise FingerpsReconError(
+            f"{what} are parallel or coplanar (singular values "
+            f"{', '.join(f'{v:.3g}' for v in singular)}): they cannot determine a normal; "
+            "recalibrate the lights (every LED lit, the sphere in view)")
+
+
+def _check_near_lights(leds: np.ndarray, camera_matrix: np.ndarray, shape: tuple[int, int],
+                       working_distance_m: float) -> None:
+    """Raise unless the LEDs light the plane z = working distance from its camera side and
+    their directions at the image centre span 3D (cheap: one point, not every pixel)."""
+    if not working_distance_m > 0:
+        raise FingerpsReconError(f"working distance must be > 0 m, got {working_distance_m}")
+    behind = np.flatnonzero(leds[:, 2] >= working_distance_m)
+    if behind.size:
+        raise FingerpsReconError(
+            f"LED(s) {', '.join(str(int(k)) for k in behind)} lie at or beyond the working "
+            f"distance {working_distance_m:g} m (z {', '.join(f'{leds[k, 2]:.3g}' for k in behind)}"
+            " m): they cannot light the finger's side facing the camera; recalibrate the "
+            "lights or set working_distance")
+    centre = np.linalg.solve(camera_matrix, [(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
+    towards = leds - centre * working_distance_m
+    _check_conditioned(towards / np.linalg.norm(towards, axis=1, keepdims=True),
+                       "the LEDs' directions at the image centre")
+
+
 def _irradiance(portions: np.ndarray, intensities: np.ndarray | None,
                 lights: np.ndarray) -> np.ndarray:
     """Per-pixel irradiance E_k (K, H, W) of each LED from the white target: W_k rebuilt from
@@ -344,6 +460,9 @@ def _checked_stack(images: np.ndarray, light_count: int, *, full_scale: float,
     if stack.ndim != 3:
         raise FingerpsReconError(
             f"a burst must be K images of one size, (K, H, W); got shape {stack.shape}")
+    if min(stack.shape[1:]) < 1:
+        raise FingerpsReconError(
+            f"the images are {stack.shape[2]} x {stack.shape[1]} px: empty; check the camera")
     if stack.shape[0] != light_count:
         raise FingerpsReconError(
             f"{stack.shape[0]} images (shape {stack.shape}) but {light_count} light directions: "
