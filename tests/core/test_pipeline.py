@@ -286,6 +286,7 @@ def _degenerate_inputs(rig: SimulatedRig, shape: tuple[int, int]) -> dict[str, d
         "LEDs beyond the working distance": {"led_positions_optical": leds + np.array([0, 0, 0.1])},
         "NaN camera matrix": {"camera_matrix": np.full((3, 3), np.nan)},
         "camera matrix with fy < 0": {"camera_matrix": rig.camera_matrix * [1, -1, 1]},
+        "singular camera matrix": {"camera_matrix": rig.camera_matrix * [[1], [1], [0]]},
     }
 
 

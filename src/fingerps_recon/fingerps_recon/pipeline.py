@@ -159,9 +159,10 @@ def prepare_calibration(
         raise FingerpsReconError(f"image size must be at least 1 x 1, got {w} x {h}")
     k_matrix = np.asarray(camera_matrix, dtype=np.float64)
     if (k_matrix.shape != (3, 3) or not np.isfinite(k_matrix).all()
-            or not (k_matrix[0, 0] > 0 and k_matrix[1, 1] > 0)):
+            or not (k_matrix[0, 0] > 0 and k_matrix[1, 1] > 0)
+            or not np.array_equal(k_matrix[2], [0.0, 0.0, 1.0])):
         raise FingerpsReconError(
-            "the camera matrix must be a finite 3x3 K with fx, fy > 0 (got "
+            "the camera matrix must be a finite 3x3 K with fx, fy > 0 and last row 0 0 1 (got "
             f"{np.array2string(k_matrix.reshape(-1), precision=4, max_line_width=10**6)}); "
             "calibrate the camera (camera_info)")
     lights = np.asarray(lights_ps, dtype=np.float64)
@@ -413,9 +414,9 @@ def _check_near_lights(leds: np.ndarray, camera_matrix: np.ndarray, shape: tuple
     if behind.size:
         raise FingerpsReconError(
             f"LED(s) {', '.join(str(int(k)) for k in behind)} lie at or beyond the working "
-            f"distance {working_distance_m:g} m (z {', '.join(f'{leds[k, 2]:.3g}' for k in behind)}"
-            " m): they cannot light the finger's side facing the camera; recalibrate the "
-            "lights or set working_distance")
+            f"distance {working_distance_m:g} m "
+            f"(z {', '.join(f'{leds[k, 2]:.3g}' for k in behind)} m): they cannot light the "
+            "finger's side facing the camera; recalibrate the lights or set working_distance")
     centre = np.linalg.solve(camera_matrix, [(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
     towards = leds - centre * working_distance_m
     _check_conditioned(towards / np.linalg.norm(towards, axis=1, keepdims=True),
