@@ -1,6 +1,7 @@
 """Bad Burst, LightCalibration and FlatField messages through recon_node's core functions
 (``reconstruct_burst``, ``PreparedCalibrations``, ``check_burst_size``,
-``check_light_calibration``, ``flat_field_maps``), without a ROS graph.
+``check_light_calibration``, ``flat_field_maps``), without a ROS graph; and the node's
+worker, in this process, going on after an error nobody expected.
 
 Every bad message must end in a ``FingerpsReconError`` that says what is wrong - never in
 another exception (which killed recon_node's worker thread), never in an "empty" result
@@ -10,18 +11,25 @@ same ``PreparedCalibrations``.
 
 from __future__ import annotations
 
+import fcntl
 import math
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
+import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Vector3
+from rclpy.context import Context
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
+from fingerps_recon import recon_node
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.frames import ps_to_optical
 from fingerps_recon.image_conversion import array_to_image, images_to_array
@@ -348,3 +356,65 @@ def test_the_log_gate_lets_each_problem_through_once_per_period() -> None:
     assert not gate.opens("a") and not gate.opens("b")
     for name in "cdefgh":  # more problems than it keeps: still one line each
         assert gate.opens(name)
+
+
+# ------------------------------------------------------------------ the node's worker
+@pytest.fixture
+def isolated_domain(monkeypatch: pytest.MonkeyPatch):
+    """A ROS domain id of this test's own (the graph tests' lock files), localhost only."""
+    lock_dir = Path(tempfile.gettempdir()) / "fingerps_ros_domains"
+    lock_dir.mkdir(exist_ok=True)
+    for domain_id in range(101, 39, -1):
+        handle = open(lock_dir / f"{domain_id}.lock", "w")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        break
+    else:
+        pytest.skip("no free ROS domain id")
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    try:
+        yield domain_id
+    finally:
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
+
+
+def test_the_worker_survives_an_unexpected_error(
+        rig: SimulatedRig, images: np.ndarray, isolated_domain: int,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    real = recon_node.reconstruct_burst
+
+    def flaky(burst: Burst, *args, **kwargs):
+        if burst.burst_id == 1:
+            raise ValueError("zero-size array to reduction operation maximum")
+        return real(burst, *args, **kwargs)
+
+    monkeypatch.setattr(recon_node, "reconstruct_burst", flaky)
+    context = Context()
+    rclpy.init(context=context, domain_id=isolated_domain,
+               signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    try:
+        node = recon_node.ReconNode(context=context)
+        node._on_lights(calibration(rig))
+        for burst_id in (1, 2):
+            good = burst(rig, images)
+            good.burst_id = burst_id
+            node._on_burst(good)
+        deadline = time.monotonic() + 60.0
+        while node._done + node._failed < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert (node._failed, node._unexpected, node._done) == (1, 1, 1)
+        assert node._worker.is_alive()
+        level, message = node._level()
+        assert level == recon_node.DiagnosticStatus.WARN and "failed" in message
+        assert node._last_error == ""  # the good burst after it
+        assert "unexpected ValueError: zero-size array" in node._last_problem
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+

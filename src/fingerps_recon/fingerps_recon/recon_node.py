@@ -64,8 +64,9 @@ _OK, _WARN, _BAD = 0, 1, 2
 class ReconNode(Node):
     """Reconstructs every complete burst with the calibration in force."""
 
-    def __init__(self) -> None:
-        super().__init__("recon", namespace=topics.NAMESPACE)
+    def __init__(self, **node_options: object) -> None:
+        """``node_options``: rclpy ``Node`` keywords (a test gives its ``context``)."""
+        super().__init__("recon", namespace=topics.NAMESPACE, **node_options)
         self._checks = ParameterChecks(self)
         self._checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
         self._checks.add("model", one_of(*(m.value for m in Model)))
