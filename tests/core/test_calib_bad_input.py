@@ -1,5 +1,6 @@
 """Bad input to the calibration cores: each case is refused with a message saying what is
-wrong and what to do (fingerps_calib.sphere_calibration, flat_field_calibration).
+wrong and what to do (fingerps_calib.sphere_calibration, flat_field_calibration), and the
+checks a calibration passes before calib_node puts it in force (calibration_store).
 
 Images from the simulated rig (fingerps_driver.simulation), altered where the rig has no
 knob for the fault.
@@ -10,9 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fingerps_calib.calibration_store import flat_field_problems, lights_problems
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_calib.sphere_calibration import calibrate_lights
+from fingerps_calib.sphere_calibration import RADIUS_RANGE_M, calibrate_lights
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 
 RADIUS = 4e-3
@@ -142,3 +144,90 @@ def test_a_saturated_white_target(rig):
     bright = np.clip(white.astype(np.float64) * 1.5, 0, 255).astype(np.uint8)
     with pytest.raises(FingerpsCalibError, match=r"LED 0:.*saturated.*lower the exposure"):
         flat_field_maps(bright)
+
+
+@pytest.mark.parametrize("radius", [1e-300, -1.0, np.inf, 1e300, np.nan, 0.0, 1e-4, 1.0])
+def test_a_radius_outside_the_plausible_range_is_refused(rig, sphere, radius):
+    # 1e-300 divided by zero, inf and 1e300 failed inside the fit (ValueError, OverflowError).
+    with pytest.raises(FingerpsCalibError, match=r"radius_m = .* between 0.0005 and 0.05"):
+        _calibrate(rig, sphere, radius=radius)
+
+
+def test_radii_at_the_ends_of_the_range_are_taken(rig, sphere):
+    lo, hi = RADIUS_RANGE_M
+    for radius in (lo, hi):
+        result = _calibrate(rig, sphere, radius=radius)
+        assert not result.ok and "is the radius right?" in result.problems[0]
+
+
+@pytest.mark.parametrize("size", [0, 1, 4, 63])
+def test_white_target_images_smaller_than_64_px_are_refused(size):
+    # 0x0 raised IndexError, 1x1 LinAlgError; 4x4 gave a "flat field".
+    with pytest.raises(FingerpsCalibError, match=rf"{size}x{size} px.*at least 64x64"):
+        flat_field_maps(np.full((7, size, size), 120, np.uint8))
+    with pytest.raises(FingerpsCalibError, match="at least 64x64"):
+        flat_field_maps(np.full((7, 480, size), 120, np.uint8))
+
+
+def test_non_finite_pixels_are_refused(rig, sphere):
+    white = np.full((3, 64, 64), 0.5)
+    white[1, 10, 10] = np.nan
+    with pytest.raises(FingerpsCalibError, match="NaN or infinite"):
+        flat_field_maps(white)
+    bad = sphere.astype(np.float64) / 255.0
+    bad[2, 0, 0] = np.inf
+    with pytest.raises(FingerpsCalibError, match="NaN or infinite"):
+        _calibrate(rig, bad)
+    k = np.array(rig.camera_matrix, dtype=float)
+    k[0, 2] = np.nan
+    with pytest.raises(FingerpsCalibError, match="finite"):
+        calibrate_lights(sphere, camera_matrix=k, radius_m=RADIUS)
+
+
+def _ring(n_led: int = 7) -> np.ndarray:
+    azimuth = np.linspace(0, 2 * np.pi, n_led, endpoint=False)
+    d = np.column_stack([0.5 * np.cos(azimuth), 0.5 * np.sin(azimuth), -np.ones(n_led)])
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_a_usable_light_calibration_has_no_problems():
+    assert lights_problems(_ring(), np.ones(7)) == []
+    assert lights_problems(_ring(), np.ones(7), led_positions_optical_m=np.zeros((0, 3))) == []
+
+
+def test_unusable_light_calibrations_are_named():
+    d = _ring()
+    nan = d.copy()
+    nan[3] = np.nan
+    (problem,) = lights_problems(nan, np.ones(7))
+    assert "LED(s) 3" in problem and "finite unit vectors" in problem
+    zero = d.copy()
+    zero[2] = 0.0
+    assert "LED(s) 2" in lights_problems(zero, np.ones(7))[0]
+    parallel = np.tile([0.0, 0.0, -1.0], (7, 1))
+    assert "parallel" in lights_problems(parallel, np.ones(7))[0]
+    intensities = np.ones(7)
+    intensities[[1, 4]] = [np.nan, 0.0]
+    (problem,) = lights_problems(d, intensities)
+    assert "LED(s) 1, 4" in problem and "> 0" in problem
+    assert "7 LEDs" in lights_problems(d, np.ones(6))[0]
+    positions = np.zeros((7, 3))
+    positions[0, 0] = np.inf
+    assert "LED positions" in lights_problems(d, np.ones(7), led_positions_optical_m=positions)[0]
+    assert "(K, 3)" in lights_problems(np.zeros((0, 3)), np.ones(0))[0]
+
+
+def test_unusable_flat_fields_are_named():
+    maps = np.full((3, 64, 80), 0.5, np.float32)
+    assert flat_field_problems(maps, np.ones(3)) == []
+    assert flat_field_problems(maps, np.ones(3), image_size=(80, 64)) == []
+    assert "the camera's images 659x493" in flat_field_problems(
+        maps, np.ones(3), image_size=(659, 493))[0]
+    for value in (np.nan, 0.0, 1.5, -np.inf):
+        bad = maps.copy()
+        bad[2, 5, 5] = value
+        (problem,) = flat_field_problems(bad, np.ones(3))
+        assert "LED(s) 2" in problem and "(0, 1]" in problem
+    assert "3 maps" in flat_field_problems(maps, np.ones(2))[0]
+    assert "> 0" in flat_field_problems(maps, np.array([1.0, np.nan, 0.5]))[0]
+    assert "none empty" in flat_field_problems(np.zeros((3, 0, 0)), np.ones(3))[0]

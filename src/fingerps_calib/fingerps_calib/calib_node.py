@@ -15,16 +15,26 @@ in force (its picture is saved as ``*_rejected.png``). A good one is published r
 transient-local (nodes that start later still receive it), saved to ``calibration_dir``
 (``fingerps_calib.calibration_store``) with its picture (``calibration_picture``), and loaded
 from there at the next start.
+
+Every service call is answered: bad input (a sphere radius outside 0.5-50 mm, frames
+smaller than 64x64 or not of the camera's size, a calibration that is not finite or is
+degenerate) gets ``success: false`` and a reason, and an unexpected error in a callback is
+logged in one line and answered the same way; the node keeps serving. ``/diagnostics``
+counts the calls answered ok, refused and failed unexpectedly, with the last error (level
+WARN while the latest call was refused, ERROR if it failed unexpectedly).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Vector3
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
@@ -44,7 +54,9 @@ from fingerps_calib.calibration_store import (
     LIGHTS_FILE,
     FlatFieldRecord,
     LightsRecord,
+    flat_field_problems,
     iso_date,
+    lights_problems,
     load_flat_field,
     load_lights,
     save_flat_field,
@@ -52,9 +64,14 @@ from fingerps_calib.calibration_store import (
 )
 from fingerps_calib.camera_info_yaml import CameraIntrinsics, load_camera_info
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.flat_field_calibration import flat_field_maps
+from fingerps_calib.flat_field_calibration import MIN_IMAGE_SIDE_PX, flat_field_maps
 from fingerps_calib.led_triangulation import Placement, combine_placements
-from fingerps_calib.sphere_calibration import LightCalibrationResult, calibrate_lights
+from fingerps_calib.sphere_calibration import (
+    RADIUS_RANGE_M,
+    LightCalibrationResult,
+    calibrate_lights,
+    check_radius,
+)
 from fingerps_msgs.msg import FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
 from fingerps_recon import qos, topics
@@ -93,8 +110,9 @@ class CalibNode(Node):
         self._checks = ParameterChecks(self)
         p = self.declare_parameter
         p("sphere_radius", 0.004, descriptor(
-            "Radius of the calibration sphere, metres (used when a request gives 0)",
-            min_value=1e-4, max_value=0.1))
+            "Radius of the calibration sphere, metres (used when a request gives 0); "
+            "0.0005-0.05 (a sphere seen whole by the camera, its silhouette wide enough to fit)",
+            min_value=RADIUS_RANGE_M[0], max_value=RADIUS_RANGE_M[1]))
         p("capture_timeout", 5.0, descriptor(
             "Seconds to wait for the driver's burst when a request carries no images",
             min_value=0.1, max_value=60.0))
@@ -104,7 +122,7 @@ class CalibNode(Node):
             integer=True))
         p("camera_name", "fingerps_sim", descriptor(
             "Camera name written into calibrations; a saved calibration of another camera "
-            "is not loaded"))
+            "is not loaded", constraints="not empty"))
         p("calibration_dir", default_calibration_dir(), descriptor(
             "Directory where the calibration in force is saved (lights.yaml, "
             "flat_field.yaml + .npz, pictures) and loaded from at start; empty: neither",
@@ -116,7 +134,7 @@ class CalibNode(Node):
             "Point (x, y, z) in metres, optical frame, where the finger rests (the default: "
             "the simulated rig's fingertip apex); the directions of a calibration from two "
             "or more sphere placements start there, and its distance is the expected "
-            "distance of the sphere", constraints="three numbers, z > 0"))
+            "distance of the sphere", constraints="three finite numbers, z > 0"))
         p("sphere_distance_tolerance", 0.3, descriptor(
             "The sphere centre must lie within this fraction of the reference point's "
             "distance from the camera (a wrong sphere radius shows as a wrong distance)",
@@ -125,9 +143,15 @@ class CalibNode(Node):
             "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
             max_value=65535.0))
         self._checks.add("reference_point", _check_reference_point)
+        self._checks.add("camera_name", _check_camera_name)
+        self._checks.add("sphere_radius", _check_sphere_radius)
+        for name in ("capture_timeout", "sphere_distance_tolerance", "mono16_full_scale"):
+            self._checks.add(name, _check_finite)
         self._checks.refuse_unknown_overrides(self)
         problems = self._checks.problems(
-            [self.get_parameter(name) for name in ("reference_point",)])
+            [self.get_parameter(name) for name in (
+                "reference_point", "camera_name", "sphere_radius", "capture_timeout",
+                "sphere_distance_tolerance", "mono16_full_scale")])
         if problems:
             raise StartupError("; ".join(problems))
 
@@ -164,11 +188,16 @@ class CalibNode(Node):
         self._lights: LightsRecord | None = None
         self._flat: FlatFieldRecord | None = None
         self._lights_msg: LightCalibration | None = None
+        self._calls = _Calls()
+        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self._load_saved()
-        self.create_service(CalibrateLights, topics.CALIBRATE_LIGHTS, self._on_lights,
+        self.create_service(CalibrateLights, topics.CALIBRATE_LIGHTS,
+                            self._answering("calibrate_lights", self._on_lights),
                             callback_group=self._service_group)
-        self.create_service(CalibrateFlatField, topics.CALIBRATE_FLAT_FIELD, self._on_flat,
+        self.create_service(CalibrateFlatField, topics.CALIBRATE_FLAT_FIELD,
+                            self._answering("calibrate_flat_field", self._on_flat),
                             callback_group=self._service_group)
+        self.create_timer(1.0, self._publish_diagnostics)
         source = f"camera_info_file {info_file}" if info_file else "the driver's camera_info"
         where = str(self._dir) if self._dir is not None else "nowhere (calibration_dir empty)"
         self.get_logger().info(f"calib ready: intrinsics from {source}; calibrations saved "
@@ -176,6 +205,62 @@ class CalibNode(Node):
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         self._camera_info = msg
+
+    # ------------------------------------------------------------------ answers, diagnostics
+    def _answering(self, service: str, handler: Callable) -> Callable:
+        """``handler`` as a service callback that always answers: an unexpected exception is
+        logged in one line, counted, and answered with success false and its reason."""
+        def callback(request, response):
+            try:
+                answer = handler(request, response)
+            except Exception as exc:  # every call gets an answer
+                text = _one_line(f"{type(exc).__name__}: {exc}")
+                answer = type(response)()
+                answer.success = False
+                answer.message = (
+                    f"{service} failed unexpectedly ({text}); {self._in_force()}; check the "
+                    "request's frames and calib_node's parameters, and report this error "
+                    "with calib_node's log if they are right")
+                self.get_logger().error(f"{service}: unexpected error, answered with "
+                                        f"success false: {text}")
+                self._calls.count(service, answer.message, unexpected=True)
+                self._publish_diagnostics()
+                return answer
+            self._calls.count(service, "" if answer.success else answer.message)
+            self._publish_diagnostics()
+            return answer
+        return callback
+
+    def _in_force(self) -> str:
+        lights = f"lights of {self._lights.date}" if self._lights is not None else "no lights"
+        flat = (f"flat field of {self._flat.date}" if self._flat is not None
+                else "no flat field")
+        return f"in force: {lights}, {flat}"
+
+    def _publish_diagnostics(self) -> None:
+        calls = self._calls.snapshot()
+        status = DiagnosticStatus(name=f"{self.get_name()}: calibration")
+        if calls["last_unexpected"]:
+            status.level = DiagnosticStatus.ERROR
+        elif calls["last_refused"]:
+            status.level = DiagnosticStatus.WARN
+        else:
+            status.level = DiagnosticStatus.OK
+        status.message = (_one_line(calls["last_error"]) if status.level != DiagnosticStatus.OK
+                          else "ok")
+        status.values = [
+            KeyValue(key="calls_ok", value=str(calls["ok"])),
+            KeyValue(key="calls_refused", value=str(calls["refused"])),
+            KeyValue(key="calls_failed_unexpectedly", value=str(calls["unexpected"])),
+            KeyValue(key="last_error", value=_one_line(calls["last_error"])),
+            KeyValue(key="lights_in_force",
+                     value=self._lights.date if self._lights is not None else ""),
+            KeyValue(key="flat_field_in_force",
+                     value=self._flat.date if self._flat is not None else ""),
+        ]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diag.publish(array)
 
     # ------------------------------------------------------------------ saved calibration
     def _load_saved(self) -> None:
@@ -189,6 +274,11 @@ class CalibNode(Node):
             flat = load_flat_field(self._dir)
         except FingerpsCalibError as exc:
             log.error(f"saved flat field not loaded: {exc}")
+            flat = None
+        if flat is not None and (problems := flat_field_problems(
+                flat.portions, flat.relative_intensities)):
+            log.error(f"saved flat field in {self._dir} not loaded: {'; '.join(problems)}; "
+                      "recalibrate")
             flat = None
         if flat is not None and flat.camera_name != name:
             log.warning(f"saved flat field in {self._dir} is for camera {flat.camera_name!r}, "
@@ -204,6 +294,12 @@ class CalibNode(Node):
             lights = load_lights(self._dir)
         except FingerpsCalibError as exc:
             log.error(f"saved light calibration not loaded: {exc}")
+            lights = None
+        if lights is not None and (problems := lights_problems(
+                lights.lights.directions_optical, self._intensities(lights.lights.led_count),
+                led_positions_optical_m=lights.lights.led_positions_optical_m)):
+            log.error(f"saved light calibration in {self._dir} not loaded: "
+                      f"{'; '.join(problems)}; recalibrate")
             lights = None
         if lights is not None and lights.camera_name != name:
             log.warning(f"saved light calibration in {self._dir} is for camera "
@@ -266,6 +362,16 @@ class CalibNode(Node):
                 "or 32FC1 images")
         return np.stack(images)
 
+    @staticmethod
+    def _check_min_size(images: np.ndarray) -> None:
+        h, w = images.shape[1:]
+        if min(h, w) < MIN_IMAGE_SIDE_PX:
+            raise FingerpsCalibError(
+                f"frames are {w}x{h} px; a calibration needs whole camera frames of at least "
+                f"{MIN_IMAGE_SIDE_PX}x{MIN_IMAGE_SIDE_PX} (the flat field is fitted to 64 "
+                "blocks across the short side, the sphere's silhouette needs pixels): send "
+                "full frames, or no frames to capture a burst through the driver")
+
     def _camera(self, info: CameraInfo | None) -> _Camera | None:
         """The intrinsics to use: camera_info_file if set, else the driver's camera_info."""
         if self._file_camera is not None:
@@ -275,9 +381,22 @@ class CalibNode(Node):
                            c.width, c.height, f"camera_info_file ({c.camera_name})")
         if info is None or info.k[0] <= 0:
             return None
+        if not np.all(np.isfinite(info.k)) or not np.all(np.isfinite(info.d)):
+            raise FingerpsCalibError(
+                "the driver's camera_info has intrinsics that are not finite (K or D); fix "
+                "the driver's camera_info_file or set calib_node's camera_info_file")
         return _Camera(np.reshape(np.asarray(info.k, dtype=np.float64), (3, 3)),
                        _distortion(info.distortion_model, np.asarray(info.d, dtype=float)),
                        int(info.width), int(info.height), "the driver's camera_info")
+
+    def _image_size(self, info: CameraInfo | None) -> tuple[int, int, str] | None:
+        """(width, height, source) of the camera's images, when known."""
+        if self._file_camera is not None and self._file_camera.width > 0:
+            c = self._file_camera
+            return c.width, c.height, f"camera_info_file ({c.camera_name})"
+        if info is not None and info.width > 0 and info.height > 0:
+            return int(info.width), int(info.height), "the driver's camera_info"
+        return None
 
     @staticmethod
     def _check_size(images: np.ndarray, camera: _Camera | None) -> None:
@@ -304,8 +423,16 @@ class CalibNode(Node):
         radius = request.sphere_radius or float(self.get_parameter("sphere_radius").value)
         images, result, camera = None, None, None
         try:
-            if radius <= 0:
-                raise FingerpsCalibError(f"sphere_radius must be > 0 m, got {radius}")
+            try:
+                check_radius(radius)
+            except FingerpsCalibError:
+                lo, hi = RADIUS_RANGE_M
+                raise FingerpsCalibError(
+                    f"sphere_radius {radius!r} m in the request: the radius of a calibration "
+                    f"sphere must be finite and between {lo:g} and {hi:g} m "
+                    f"({1e3 * lo:g}-{1e3 * hi:g} mm); give the sphere's radius in metres "
+                    "(0.004 for a ball of 8 mm), or 0 for calib_node's sphere_radius "
+                    f"({self.get_parameter('sphere_radius').value:g} m)") from None
             frames, info, _ = self._frames(list(request.frames), with_dark=False)
             images = self._stack(frames)
             camera = self._camera(info)
@@ -316,6 +443,7 @@ class CalibNode(Node):
                      "the driver's camera_info has no intrinsics (K = 0): set the driver's")
                     + " or calib_node's camera_info_file (make one with `ros2 run "
                     "fingerps_calib calibrate_camera` from checkerboard images)")
+            self._check_min_size(images)
             self._check_size(images, camera)
             reference = np.asarray(self.get_parameter("reference_point").value, dtype=float)
             tolerance = float(self.get_parameter("sphere_distance_tolerance").value)
@@ -337,21 +465,26 @@ class CalibNode(Node):
                 raise _RefusedError(
                     f"the {len(placements)} sphere placements do not combine (this placement "
                     "is not added): " + "; ".join(combined.problems), combined.problems)
+            frame_id = (info.header.frame_id if info is not None and info.header.frame_id
+                        else frames[0].header.frame_id or DEFAULT_FRAME_ID)
+            h, w = images.shape[1:]
+            record = LightsRecord(
+                camera_name=str(self.get_parameter("camera_name").value), frame_id=frame_id,
+                stamp_ns=self.get_clock().now().nanoseconds, image_width=w, image_height=h,
+                camera_matrix=camera.matrix, lights=combined)
+            msg = self._lights_message(record)
+            problems = tuple(lights_problems(
+                combined.directions_optical, msg.relative_intensities,
+                led_positions_optical_m=combined.led_positions_optical_m))
+            if problems:
+                raise _RefusedError("the light calibration is not usable (not put in force): "
+                                    + "; ".join(problems), problems)
         except _RefusedError as exc:
             return self._refuse_lights(response, str(exc), exc.problems, images, result,
                                        camera)
         except FingerpsCalibError as exc:
             return self._refuse_lights(response, str(exc), (str(exc),), images, result,
                                        camera)
-
-        frame_id = (info.header.frame_id if info is not None and info.header.frame_id
-                    else frames[0].header.frame_id or DEFAULT_FRAME_ID)
-        h, w = images.shape[1:]
-        record = LightsRecord(
-            camera_name=str(self.get_parameter("camera_name").value), frame_id=frame_id,
-            stamp_ns=self.get_clock().now().nanoseconds, image_width=w, image_height=h,
-            camera_matrix=camera.matrix, lights=combined)
-        msg = self._lights_message(record)
         self._lights, self._lights_msg = record, msg
         self._pub_lights.publish(msg)
         saved = self._save_lights(record, images, result, camera)
@@ -448,13 +581,25 @@ class CalibNode(Node):
         try:
             frames, info, dark = self._frames(list(request.frames), with_dark=True)
             images = self._stack(frames)
-            self._check_size(images, self._camera(info))
+            self._check_min_size(images)
+            size = self._image_size(info)
+            if size is not None and (images.shape[2], images.shape[1]) != size[:2]:
+                raise FingerpsCalibError(
+                    f"the white-target frames are {images.shape[2]}x{images.shape[1]}, the "
+                    f"camera's images ({size[2]}) {size[0]}x{size[1]}: send whole frames of "
+                    "this camera, or no frames to capture a burst through the driver")
             if dark is not None and dark.shape != images.shape[1:]:
                 raise FingerpsCalibError(
                     f"the dark frame is {dark.shape[1]}x{dark.shape[0]}, the images "
                     f"{images.shape[2]}x{images.shape[1]}; recapture")
             result = flat_field_maps(images, dark=dark, saturation_level=self._full_scale(frames),
                                      polynomial_degree=degree)
+            problems = flat_field_problems(
+                result.portions, result.relative_intensities,
+                image_size=size[:2] if size is not None else None)
+            if problems:
+                raise FingerpsCalibError("the flat field is not usable (not put in force): "
+                                         + "; ".join(problems))
         except FingerpsCalibError as exc:
             response.success, response.message = False, str(exc)
             if self._flat is not None:
@@ -557,9 +702,71 @@ def _check_reference_point(value: object) -> str | None:
         point = [float(x) for x in value]  # a ROS double array is an array.array
     except (TypeError, ValueError):
         point = []
-    if len(point) != 3 or not point[2] > 0:
-        return "must be three numbers (x, y, z) in metres with z > 0"
+    if len(point) != 3 or not all(math.isfinite(x) for x in point) or not point[2] > 0:
+        return ("must be three finite numbers (x, y, z) in metres with z > 0 (in front of "
+                "the camera), e.g. [0.0, 0.0025, 0.09]")
     return None
+
+
+def _check_camera_name(value: object) -> str | None:
+    if not isinstance(value, str) or not value.strip():
+        return ("must not be empty: it names the camera in every calibration (and a saved "
+                "calibration is loaded only for the same name), e.g. fingerps_sim")
+    return None
+
+
+def _check_sphere_radius(value: object) -> str | None:
+    try:
+        check_radius(value)
+    except FingerpsCalibError:
+        lo, hi = RADIUS_RANGE_M
+        return (f"must be a finite radius in metres between {lo:g} and {hi:g} "
+                f"({1e3 * lo:g}-{1e3 * hi:g} mm), e.g. 0.004 for a ball of 8 mm")
+    return None
+
+
+def _check_finite(value: object) -> str | None:
+    try:
+        finite = math.isfinite(float(value))
+    except (TypeError, ValueError):
+        finite = False
+    return None if finite else "must be a finite number"
+
+
+def _one_line(text: str) -> str:
+    """``text`` on one line (exception texts can hold newlines), at most 500 characters."""
+    line = " ".join(str(text).split())
+    return line if len(line) <= 500 else line[:497] + "..."
+
+
+class _Calls:
+    """Counts of the service calls answered (thread-safe), for /diagnostics."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._ok = self._refused = self._unexpected = 0
+        self._last_error = ""
+        self._last_refused = self._last_unexpected = False
+
+    def count(self, service: str, error: str, *, unexpected: bool = False) -> None:
+        """Count one answer; ``error`` empty for success."""
+        with self._lock:
+            if unexpected:
+                self._unexpected += 1
+            elif error:
+                self._refused += 1
+            else:
+                self._ok += 1
+            if error:
+                self._last_error = f"{service}: {error}"
+            self._last_refused = bool(error)
+            self._last_unexpected = unexpected
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            return {"ok": self._ok, "refused": self._refused, "unexpected": self._unexpected,
+                    "last_error": self._last_error, "last_refused": self._last_refused,
+                    "last_unexpected": self._last_unexpected}
 
 
 def _lights_summary(record: LightsRecord) -> str:

@@ -122,6 +122,111 @@ def iso_date(stamp_ns: int) -> str:
     return moment.isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
+# -------------------------------------------------------------------------- validation
+
+#: Directions closer than this (degrees) to each other all count as one direction: a light
+#: calibration whose directions are all parallel cannot separate shading from albedo.
+MIN_DIRECTION_SPREAD_DEG = 1.0
+
+
+def lights_problems(
+    directions_optical: np.ndarray,
+    relative_intensities: np.ndarray,
+    *,
+    led_positions_optical_m: np.ndarray | None = None,
+) -> list[str]:
+    """What makes a light calibration unusable; empty if it may be put in force.
+
+    Parameters
+    ----------
+    directions_optical : (K, 3) float
+        Light directions, optical frame: each finite and of unit length, not all parallel
+        (within `MIN_DIRECTION_SPREAD_DEG`).
+    relative_intensities : (K,) float
+        Each finite and > 0.
+    led_positions_optical_m : (K, 3) float, optional
+        Triangulated LED positions (metres), each finite.
+
+    Returns
+    -------
+    list of str
+        One sentence a problem.
+    """
+    d = np.asarray(directions_optical, dtype=np.float64)
+    e = np.asarray(relative_intensities, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3 or len(d) < 1:
+        return [f"directions have shape {d.shape}, expected (K, 3) with K >= 1"]
+    problems = []
+    n_led = len(d)
+    norms = np.linalg.norm(d, axis=1)
+    bad = np.flatnonzero(~np.isfinite(norms) | (np.abs(norms - 1.0) > 1e-6))
+    if len(bad):
+        problems.append("the directions of LED(s) " + ", ".join(map(str, bad))
+                        + " are not finite unit vectors")
+    elif n_led > 1:
+        spread = np.degrees(np.arccos(np.clip(d @ d[0], -1.0, 1.0)))
+        if np.max(spread) < MIN_DIRECTION_SPREAD_DEG:
+            problems.append(f"all {n_led} directions are parallel (within "
+                            f"{np.max(spread):.2g} deg): photometric stereo needs lights "
+                            "from different directions")
+    if e.shape != (n_led,):
+        problems.append(f"{e.size} relative intensities for {n_led} LEDs")
+    elif not np.all(np.isfinite(e) & (e > 0)):
+        bad = np.flatnonzero(~(np.isfinite(e) & (e > 0)))
+        problems.append("the relative intensities of LED(s) " + ", ".join(map(str, bad))
+                        + " are not finite and > 0")
+    if led_positions_optical_m is not None:
+        q = np.asarray(led_positions_optical_m, dtype=np.float64)
+        if q.size and (q.shape != (n_led, 3) or not np.all(np.isfinite(q))):
+            problems.append(f"the LED positions (shape {q.shape}) are not {n_led} finite "
+                            "points")
+    return problems
+
+
+def flat_field_problems(
+    portions: np.ndarray,
+    relative_intensities: np.ndarray,
+    *,
+    image_size: tuple[int, int] | None = None,
+) -> list[str]:
+    """What makes a flat field unusable; empty if it may be put in force.
+
+    Parameters
+    ----------
+    portions : (K, H, W) float
+        The maps: every value finite and in (0, 1].
+    relative_intensities : (K,) float
+        Each finite and > 0.
+    image_size : (width, height), optional
+        The camera's image size, when known: the maps must have it.
+
+    Returns
+    -------
+    list of str
+        One sentence a problem.
+    """
+    p = np.asarray(portions)
+    e = np.asarray(relative_intensities, dtype=np.float64)
+    if p.ndim != 3 or p.shape[0] < 1 or 0 in p.shape:
+        return [f"flat-field maps of shape {p.shape}, expected (K, H, W), none empty"]
+    problems = []
+    n_led, h, w = p.shape
+    if image_size is not None and tuple(image_size) != (w, h):
+        problems.append(f"the maps are {w}x{h}, the camera's images "
+                        f"{image_size[0]}x{image_size[1]}")
+    ok = np.isfinite(p) & (p > 0) & (p <= 1)
+    if not np.all(ok):
+        bad = np.flatnonzero(~ok.reshape(n_led, -1).all(axis=1))
+        problems.append("the maps of LED(s) " + ", ".join(map(str, bad))
+                        + " have values that are not finite or not in (0, 1]")
+    if e.shape != (n_led,):
+        problems.append(f"{e.size} relative intensities for {n_led} maps")
+    elif not np.all(np.isfinite(e) & (e > 0)):
+        problems.append("relative intensities not finite and > 0: "
+                        + ", ".join(f"{x:g}" for x in e))
+    return problems
+
+
 # ------------------------------------------------------------------------------ lights
 
 

@@ -35,6 +35,12 @@ from fingerps_calib.errors import FingerpsCalibError
 #: Portions are clipped below at this value so that dividing by them stays finite.
 MIN_PORTION = 1e-3
 
+#: Smallest width and height (pixels) of a white-target image. The smooth field is fitted to
+#: (and its residual measured on) the means of blocks, 64 across the short side, so that
+#: paper texture and noise average out; a smaller image has blocks of one pixel or none (a
+#: 1x1 image made the fit fail, a 0x0 one crash), and no real sensor is that small.
+MIN_IMAGE_SIDE_PX = 64
+
 
 class Smoothing(Enum):
     """How each white-target image is smoothed before it becomes a portion map."""
@@ -88,7 +94,7 @@ def flat_field_maps(
     Parameters
     ----------
     images : (K, H, W) array, any real dtype
-        W_k: the white target under LED k alone.
+        W_k: the white target under LED k alone; H, W >= `MIN_IMAGE_SIDE_PX`.
     smoothing_sigma_px : float
         Gaussian sigma of `Smoothing.LOCAL_LINEAR`, pixels; large against the paper's
         texture, small against the field's variation.
@@ -125,6 +131,15 @@ def flat_field_maps(
             f"images has shape {stack.shape} ({stack.dtype}), expected (K, H, W) numbers, "
             "one white-target image per LED"
         )
+    if min(stack.shape[1:]) < MIN_IMAGE_SIDE_PX:
+        raise FingerpsCalibError(
+            f"the white-target images are {stack.shape[2]}x{stack.shape[1]} px; the flat "
+            f"field needs at least {MIN_IMAGE_SIDE_PX}x{MIN_IMAGE_SIDE_PX} (the smooth field "
+            "is fitted to 64 blocks across the short side): capture full camera frames"
+        )
+    if np.issubdtype(stack.dtype, np.floating) and not np.all(np.isfinite(stack)):
+        raise FingerpsCalibError(
+            "the white-target images hold NaN or infinite pixels; capture them again")
     if not smoothing_sigma_px > 0:
         raise FingerpsCalibError(f"smoothing_sigma_px = {smoothing_sigma_px} must be > 0")
     if not isinstance(smoothing, Smoothing):

@@ -36,6 +36,28 @@ _EDGE_SMOOTHING_PX = (0.5, 1.0, 1.5, 2.0)
 #: stability (`LightCalibrationResult.residuals_px`); the middle one gives the centroid.
 _STABILITY_THRESHOLDS = (0.3, 0.5, 0.7)
 
+#: Radii (metres) a calibration sphere can have in front of a fingerprint camera: below
+#: 0.5 mm its silhouette is a few pixels wide at the working distance (~90 mm) and cannot be
+#: fitted; above 50 mm it cannot be seen whole. Ball bearings of 2-25 mm are the usual ones.
+RADIUS_RANGE_M = (0.5e-3, 50e-3)
+
+
+def check_radius(radius_m: float) -> None:
+    """Raise `FingerpsCalibError` unless ``radius_m`` is a number within `RADIUS_RANGE_M`.
+
+    Radii outside it fail inside the fit rather than being refused (1e-300 divides by zero,
+    1e300 overflows, inf or NaN poisons the solver).
+    """
+    lo, hi = RADIUS_RANGE_M
+    try:
+        radius = float(radius_m)
+    except (TypeError, ValueError):
+        radius = float("nan")
+    if not lo <= radius <= hi:  # False for NaN too
+        raise FingerpsCalibError(
+            f"radius_m = {radius_m!r} must be a finite sphere radius in metres between "
+            f"{lo:g} and {hi:g} ({1e3 * lo:g}-{1e3 * hi:g} mm); measure the sphere and give "
+            "its radius in metres (4 mm is 0.004)")
 
 @dataclass(frozen=True, eq=False)
 class SphereFit:
@@ -315,7 +337,7 @@ def fit_sphere_center(
     Raises
     ------
     FingerpsCalibError
-        Bad shapes, too few points, or a non-positive radius.
+        Bad shapes, too few points, or a radius outside `RADIUS_RANGE_M`.
     """
     edge_uv = np.asarray(edge_uv, dtype=np.float64)
     k = _camera_matrix(camera_matrix)
@@ -324,8 +346,7 @@ def fit_sphere_center(
             f"edge_uv has shape {edge_uv.shape}, expected (N, 2) with N >= 5; is the sphere "
             "visible in the images?"
         )
-    if not radius_m > 0:
-        raise FingerpsCalibError(f"radius_m = {radius_m} must be positive (metres)")
+    check_radius(radius_m)
     rays = _rays(edge_uv, k)
     (uc, vc), rho = _fit_circle(edge_uv)
     f = float(np.sqrt(k[0, 0] * k[1, 1]))
@@ -600,7 +621,7 @@ def calibrate_lights(
     camera_matrix : (3, 3) float
         K of the camera.
     radius_m : float
-        Radius of the sphere, metres.
+        Radius of the sphere, metres, within `RADIUS_RANGE_M`.
     mask : (H, W) bool, optional
         The sphere's pixels (then its boundary gives the silhouette).
     distortion : (n,) float, optional
@@ -631,7 +652,7 @@ def calibrate_lights(
     Raises
     ------
     FingerpsCalibError
-        Bad input shapes or radius.
+        Bad input shapes, or a radius outside `RADIUS_RANGE_M`.
     """
     stack = np.asarray(images)
     if stack.ndim != 3 or stack.shape[0] < 1 or not np.issubdtype(stack.dtype, np.number):
@@ -639,9 +660,11 @@ def calibrate_lights(
             f"images has shape {stack.shape} ({stack.dtype}), expected (K, H, W) numbers, "
             "one image per LED"
         )
+    if np.issubdtype(stack.dtype, np.floating) and not np.all(np.isfinite(stack)):
+        raise FingerpsCalibError(
+            "the sphere images hold NaN or infinite pixels; capture them again")
     k = _camera_matrix(camera_matrix)
-    if not radius_m > 0:
-        raise FingerpsCalibError(f"radius_m = {radius_m} must be positive (metres)")
+    check_radius(radius_m)
     if saturation_level is None and np.issubdtype(stack.dtype, np.integer):
         saturation_level = float(np.iinfo(stack.dtype).max)
     n_led, h, w = stack.shape
@@ -894,10 +917,10 @@ def _silhouette_contrast(stack: np.ndarray, center: np.ndarray, radius: float) -
 
 def _camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:
     k = np.asarray(camera_matrix, dtype=np.float64)
-    if k.shape != (3, 3) or not (k[0, 0] > 0 and k[1, 1] > 0):
+    if k.shape != (3, 3) or not (k[0, 0] > 0 and k[1, 1] > 0) or not np.all(np.isfinite(k)):
         raise FingerpsCalibError(
             f"camera_matrix has shape {k.shape}, expected (3, 3) [[fx,0,cx],[0,fy,cy],[0,0,1]] "
-            "with fx, fy > 0; load it with fingerps_calib.camera_info_yaml.load_camera_info"
+            "finite, with fx, fy > 0; load it with fingerps_calib.camera_info_yaml.load_camera_info"
         )
     return k
 
