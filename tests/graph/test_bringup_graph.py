@@ -1,11 +1,13 @@
 """bringup as a real process: the whole graph from one parameter file, Ctrl-C stops it
-cleanly (recorder's bag finalised, exit 0); a bad parameter file stops it naming the key;
-each package's config/<node>.yaml loads in its node and lists every parameter it has."""
+cleanly (recorder's bag finalised, exit 0) however many signals follow; a bad parameter file
+stops it naming the key, and a node refusing a parameter stops the others; each package's
+config/<node>.yaml loads in its node and lists every parameter it has."""
 
 from __future__ import annotations
 
 import re
 import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -62,6 +64,31 @@ def test_bringup_starts_the_graph_and_ctrl_c_stops_it_cleanly(
     assert (session / "metadata.yaml").is_file()  # the recorder finalised its bag
 
 
+def test_signals_repeated_while_bringup_stops_change_nothing(
+        ros_node: Node, start_node, tmp_path: Path) -> None:
+    """Ctrl-C, then SIGTERM and SIGINT in turn every 10 ms until bringup has exited (a second
+    Ctrl-C, the process group's SIGINT, a supervisor's SIGTERM): still one clean stop."""
+    params = yaml.safe_load(_config("fingerps_driver", "fingerps_sim.yaml").read_text())
+    params["/fingerps/recorder"]["ros__parameters"]["bags_dir"] = str(tmp_path / "bags")
+    bringup = start_node("fingerps_driver", "bringup", "--params",
+                         str(_write(tmp_path / "sim.yaml", params)))
+    for name in NODES:
+        bringup.wait_in_graph(ros_node, name, NS, timeout=60.0)
+    bringup.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + 40.0
+    sent = 1
+    while bringup.running() and time.monotonic() < deadline:
+        bringup.send_signal(signal.SIGTERM if sent % 2 else signal.SIGINT)
+        sent += 1
+        time.sleep(0.01)
+    assert bringup.wait(timeout=10.0) == 0, bringup.output
+    assert "Traceback" not in bringup.output, bringup.output
+    assert re.search(r"stopped: driver_node 0, calib_node 0, recon_node 0, recorder_node 0, "
+                     r"scan_node 0", bringup.output), bringup.output
+    (session,) = list((tmp_path / "bags").iterdir())
+    assert (session / "metadata.yaml").is_file()
+
+
 def test_every_package_config_loads_and_lists_every_parameter(
         ros_node: Node, start_node, spin_until, tmp_path: Path) -> None:
     merged = {}
@@ -116,3 +143,13 @@ def test_a_bad_parameter_file_stops_bringup_naming_the_key(
                          str(_write(tmp_path / "bad.yaml", data)))
     assert bringup.wait(timeout=60.0) == 2, bringup.output
     assert named in bringup.output, bringup.output
+    if not section.endswith("scann"):  # a node refused it: the others were stopped
+        failed = section.rsplit("/", 1)[1]
+        stopped = re.search(r"\[bringup\] stopped: (.*)", bringup.output)
+        assert stopped, bringup.output
+        codes = dict(item.rsplit(" ", 1) for item in stopped.group(1).split(", "))
+        assert set(codes) == {f"{n}_node" for n in NODES}
+        assert codes.pop(f"{failed}_node") == "2"
+        # 0, or -15 for a node still importing its modules when it was stopped
+        assert set(codes.values()) <= {"0", str(-signal.SIGTERM)}, bringup.output
+        assert "Traceback" not in bringup.output, bringup.output

@@ -15,7 +15,9 @@ Ctrl-C (SIGINT) or SIGTERM to bringup is passed on as one SIGTERM to every node 
 in its own session, so a terminal's Ctrl-C reaches only bringup; the nodes treat SIGTERM as
 Ctrl-C, and a node still importing its modules ends quietly instead of with a
 KeyboardInterrupt traceback): the driver switches the LEDs off and the recorder finalises its
-bag. Exit code 0 when every node exited cleanly.
+bag. Exit code 0 when every node exited cleanly. Further signals (a second Ctrl-C, SIGINT to
+the process group and SIGTERM from a supervisor) change nothing: each node gets one SIGTERM,
+and ``bringup`` itself ignores SIGINT and SIGTERM from then until it exits (no traceback).
 
 This lives in fingerps_driver beside the demo, which starts the same graph: bringup is the
 user-facing command; a launch file for full ROS 2 installations is
@@ -138,8 +140,13 @@ class Graph:
         return codes
 
 
-def run(params: Path, *, log_dir: Path | None, stop_timeout_s: float) -> int:
-    """Start the graph and supervise it until a signal or a node's exit; return the code."""
+def run(params: Path, *, log_dir: Path | None, stop_timeout_s: float,
+        ignore_signals_after: bool = False) -> int:
+    """Start the graph and supervise it until a signal or a node's exit; return the code.
+
+    SIGINT and SIGTERM are caught while it runs; afterwards the previous handlers are back,
+    or, with ``ignore_signals_after`` (the command: the process is about to exit), both
+    signals are ignored."""
     check_params_file(params)
     if log_dir is not None:
         log_dir.mkdir(parents=True, exist_ok=True)
@@ -166,7 +173,7 @@ def run(params: Path, *, log_dir: Path | None, stop_timeout_s: float) -> int:
         codes = graph.stop(stop_timeout_s)
     finally:
         for signum, handler in previous.items():
-            signal.signal(signum, handler)
+            signal.signal(signum, signal.SIG_IGN if ignore_signals_after else handler)
     print(f"[bringup] stopped: {', '.join(f'{k} {v}' for k, v in codes.items())}", flush=True)
     if failed:
         return EXIT_BAD_INPUT if failed[0][1] == EXIT_BAD_INPUT else 1
@@ -188,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return run(args.params or default_params_file(), log_dir=args.log_dir,
-                   stop_timeout_s=args.stop_timeout)
+                   stop_timeout_s=args.stop_timeout, ignore_signals_after=True)
     except BringupError as exc:
         print(f"[bringup] error: {exc}", file=sys.stderr, flush=True)
         return EXIT_BAD_INPUT
