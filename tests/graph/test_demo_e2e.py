@@ -56,3 +56,11 @@ def test_demo_reconstructs_the_simulated_finger(ros_domain: int, tmp_path: Path)
     with open(session / info["relative_file_paths"][0], "rb") as stream:
         summary = make_reader(stream).get_summary()
     assert summary is not None and summary.statistics.message_count == sum(counts.values())
+
+    # Private by default (fingerprints are biometric data): everything the demo and its
+    # graph wrote -- images, cloud, calibration, bag, metadata, logs -- is owner-only.
+    written = [p for root in (out, bags) for p in (root, *root.rglob("*"))]
+    assert len(written) > 10
+    readable = [f"{p} {oct(p.stat().st_mode & 0o777)}" for p in written
+                if p.stat().st_mode & 0o077]
+    assert not readable, readable

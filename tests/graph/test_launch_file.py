@@ -44,7 +44,7 @@ def _stand_in_modules() -> dict[str, types.ModuleType]:
         "launch.substitutions", "launch_ros", "launch_ros.actions")}
     modules["launch"].LaunchContext = object
     modules["launch"].LaunchDescription = _Entity
-    for name in ("DeclareLaunchArgument", "EmitEvent", "LogInfo"):
+    for name in ("DeclareLaunchArgument", "EmitEvent", "LogInfo", "SetEnvironmentVariable"):
         setattr(modules["launch.actions"], name, type(name, (_Entity,), {}))
     modules["launch.events"].Shutdown = _Shutdown
     modules["launch.events.process"].ProcessExited = object

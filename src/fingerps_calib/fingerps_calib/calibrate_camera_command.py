@@ -23,6 +23,7 @@ import numpy as np
 from fingerps_calib.camera_info_yaml import save_camera_info
 from fingerps_calib.checkerboard_calibration import calibrate_checkerboard
 from fingerps_calib.errors import FingerpsCalibError
+from fingerps_recon.privacy import start_private_tool
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 EXIT_FAILED, EXIT_BAD_INPUT = 1, 2
@@ -106,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_calib calibrate_camera``."""
+    if not start_private_tool("calibrate_camera"):  # owner-only files (fingerps_recon.privacy)
+        return 2
     args = parser().parse_args(argv)
     try:
         return run(args)

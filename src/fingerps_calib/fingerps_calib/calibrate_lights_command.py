@@ -44,6 +44,7 @@ from fingerps_calib.camera_info_yaml import load_camera_info
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.sphere_calibration import calibrate_lights, calibrate_lights_orthographic
 from fingerps_recon.frames import ps_to_optical
+from fingerps_recon.privacy import start_private_tool
 
 DIRECTIONS_FILE = "light_directions.txt"
 REPORT_FILE = "light_calibration_report.yaml"
@@ -235,6 +236,8 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_calib calibrate_lights``."""
+    if not start_private_tool("calibrate_lights"):  # owner-only files (fingerps_recon.privacy)
+        return 2
     args = parser().parse_args(argv)
     try:
         return run(args)

@@ -40,6 +40,7 @@ from fingerps_recon.image_conversion import image_to_array
 from fingerps_recon.normal_map import normal_map_rgb
 from fingerps_recon.ply import write_ply
 from fingerps_recon.point_cloud_conversion import cloud_to_points
+from fingerps_recon.privacy import start_private_tool, use_localhost_discovery
 
 # Sphere placements for the light calibration (optical frame, metres): with two or more the
 # calibration also finds the LED positions, and reconstruction uses near lights.
@@ -357,6 +358,9 @@ def print_summary(f: dict[str, float], out: Path, codes: list[int]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_driver demo``."""
+    if not start_private_tool("demo"):  # owner-only files (fingerps_recon.privacy)
+        return 2
+    use_localhost_discovery()  # the graph it starts talks to this machine only, by default
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--bags", default="bags", help="where the session is recorded")

@@ -18,11 +18,12 @@ the graph is being stopped also makes the exit code 1. The recorder gets more ti
 launch's default 5 s + 5 s before SIGTERM and SIGKILL, so that it can finish a large bag.
 """
 
+import os
 from pathlib import Path
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchContext, LaunchDescription
-from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo
+from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo, SetEnvironmentVariable
 from launch.events import Shutdown
 from launch.events.process import ProcessExited
 from launch.substitutions import LaunchConfiguration
@@ -76,8 +77,13 @@ def generate_launch_description() -> LaunchDescription:
         nodes.append(Node(package=package, executable=executable, name=name,
                           namespace="fingerps", parameters=[params_file], output="screen",
                           emulate_tty=True, on_exit=on_node_exit, **timeouts))
+    # Private by default: discovery on this machine only, unless the user chose a range
+    # (e.g. ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET to open the graph to the network).
+    discovery = ([] if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")
+                 else [SetEnvironmentVariable("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")])
     return LaunchDescription([
         DeclareLaunchArgument("params_file", default_value=str(default),
                               description="ROS 2 parameter file of the whole graph"),
+        *discovery,
         *nodes,
     ])

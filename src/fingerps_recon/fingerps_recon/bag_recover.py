@@ -21,6 +21,7 @@ import sys
 
 from fingerps_recon.bag_recovery import BagRecoveryError, default_destination, recover_bag
 from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.privacy import start_private_tool
 
 EXIT_BAD_INPUT = 2
 
@@ -38,6 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_recon bag_recover``; returns the exit code."""
+    if not start_private_tool("bag_recover"):  # owner-only files (fingerps_recon.privacy)
+        return 2
     options = build_parser().parse_args(argv)
     destination = options.output or default_destination(options.source)
     try:

@@ -46,6 +46,7 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.node import Node
 
 from fingerps_recon.parameters import UnknownParameterError
+from fingerps_recon.privacy import PrivacySettingError, apply_private_umask
 
 EXIT_BAD_INPUT = 2
 PROFILES_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
@@ -149,6 +150,11 @@ def _run(
     executor: Callable[[], Executor],
     expected_errors: tuple[type[Exception], ...],
 ) -> int:
+    try:
+        apply_private_umask()  # files and shared-memory segments owner-only (privacy.py)
+    except PrivacySettingError as exc:
+        print(f"[{name}] error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
     use_large_data_profile()
     try:
         rclpy.init(args=args)

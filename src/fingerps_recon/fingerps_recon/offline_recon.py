@@ -64,6 +64,7 @@ from fingerps_recon.pipeline import (
     reconstruct,
 )
 from fingerps_recon.ply import write_ply
+from fingerps_recon.privacy import start_private_tool
 
 _DEFAULTS = ReconstructionOptions()
 _PROG = "offline_recon"
@@ -71,6 +72,8 @@ _PROG = "offline_recon"
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_recon offline_recon``; returns the exit code."""
+    if not start_private_tool("offline_recon"):  # owner-only files (fingerps_recon.privacy)
+        return 2
     args = _parser().parse_args(argv)
     try:
         return run(args)

@@ -56,6 +56,7 @@ from fingerps_recon.parameter_sweep import (
 )
 from fingerps_recon.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.ply import write_ply
+from fingerps_recon.privacy import start_private_tool
 
 _PROG = "offline_tune"
 BURST_TYPE = "fingerps_msgs/msg/Burst"
@@ -354,6 +355,8 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_recon offline_tune``; returns the exit code."""
+    if not start_private_tool("offline_tune"):  # owner-only files (fingerps_recon.privacy)
+        return 2
     args = _parser().parse_args(argv)
     try:
         settings = settings_grid(args.model, args.w, args.k)

@@ -270,7 +270,8 @@ class _UnbufferedFile:
     """
 
     def __init__(self, path: Path) -> None:
-        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        # 0o666 less the umask: owner-only under the nodes' 077 (fingerps_recon.privacy)
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         self._position = 0
 
     def write(self, data: bytes) -> int:
