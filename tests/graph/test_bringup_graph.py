@@ -153,3 +153,30 @@ def test_a_bad_parameter_file_stops_bringup_naming_the_key(
         # 0, or -15 for a node still importing its modules when it was stopped
         assert set(codes.values()) <= {"0", str(-signal.SIGTERM)}, bringup.output
         assert "Traceback" not in bringup.output, bringup.output
+
+
+def test_the_graph_bringup_starts_discovers_on_this_machine_only(
+        ros_node: Node, start_node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Jazzy's default is the subnet: with the variable unset, bringup must start its nodes
+    # with localhost discovery (fingerps_recon.privacy), and its files owner-only.
+    params = yaml.safe_load(_config("fingerps_driver", "fingerps_sim.yaml").read_text())
+    params["/fingerps/recorder"]["ros__parameters"]["bags_dir"] = str(tmp_path / "bags")
+    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE")
+    bringup = start_node("fingerps_driver", "bringup", "--params",
+                         str(_write(tmp_path / "sim.yaml", params)))
+    for name in NODES:  # the test's own node discovers on localhost: it sees them
+        bringup.wait_in_graph(ros_node, name, NS, timeout=60.0)
+    pid = bringup.process.pid
+    children = {int(c) for task in Path(f"/proc/{pid}/task").iterdir()
+                for c in (task / "children").read_text().split()}
+    assert len(children) == len(NODES), children
+    for child in children:
+        environ = dict(item.split("=", 1) for item in
+                       Path(f"/proc/{child}/environ").read_bytes().decode().split("\0")
+                       if "=" in item)
+        assert environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST", child
+    bringup.send_signal(signal.SIGINT)
+    assert bringup.wait(timeout=40.0) == 0, bringup.output
+    bag_files = list((tmp_path / "bags").rglob("*"))
+    assert bag_files and all(p.stat().st_mode & 0o077 == 0 for p in bag_files), \
+        [(p, oct(p.stat().st_mode)) for p in bag_files]
