@@ -331,14 +331,6 @@ def test_numba_without_numba_raises_and_auto_falls_back(monkeypatch: pytest.Monk
     reference = solve_hk(images, lights, backend="numpy", **inputs)
     np.testing.assert_array_equal(auto.normals, reference.normals)
     assert auto.cost_history == reference.cost_history
-    assert hk_solver.warm_up_hk() == 0.0
-
-
-def test_warm_up_compiles_the_kernels() -> None:
-    _skip_without_numba()
-    seconds = hk_solver.warm_up_hk()
-    assert 0.0 < seconds < 600.0
-    assert hk_solver.warm_up_hk() < 1.0  # compiled now: only the tiny solve
 
 
 @pytest.fixture(scope="module")

@@ -58,14 +58,13 @@ limits how closely a pixel's minimum is approached: its cost stays within about 
   masked pixels and the result images too. On the rig finger (~172 000 pixels x 7 lights,
   two cores) 3-4x faster than numpy; the two agree to float32 rounding (normals within
   1e-4 degrees, A within 1e-7). The first call in a process compiles the kernels or loads
-  them from numba's on-disk cache (:func:`warm_up_hk`).
+  them from numba's on-disk cache (:mod:`fingerps_recon.kernel_warm_up`).
 """
 
 from __future__ import annotations
 
 import importlib
 import math
-import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -117,37 +116,6 @@ def _kernel_module(backend: str) -> ModuleType | None:
             _KERNEL.append(None)
             _KERNEL_ERROR[0] = f"{type(exc).__name__}: {exc}"
     return _KERNEL[0]
-
-
-def warm_up_hk() -> float:
-    """Compile the numba backend's kernels, or load them from numba's on-disk cache.
-
-    The first ``solve_hk(backend="numba" or "auto")`` of a process does this otherwise
-    (seconds when compiling, ~1 s when loading): call it when a node starts so that the
-    first burst is as fast as any. Solves two tiny problems with float32 inputs as the
-    pipeline passes them: distant lights, and per-pixel (near) lights, views and
-    intensities (inputs of other dtypes compile the gathering kernels once more on first
-    use). Returns the seconds it took (the numba import included); 0.0 if numba is not
-    available (``solve_hk`` then uses numpy).
-    """
-    start = time.perf_counter()
-    if _kernel_module("auto") is None:
-        return 0.0
-    f32 = np.float32
-    lights = np.array([[0.4, 0.0, 0.9165], [-0.2, 0.35, 0.9150], [-0.2, -0.35, 0.9150]])
-    normals = np.zeros((2, 2, 3), f32)
-    normals[..., 2] = 1.0
-    images = (40.0 + 100.0 * np.einsum("kc,hwc->khw", lights, normals)).astype(f32)
-    common = {
-        "mask": np.ones((2, 2), bool), "init_normals": normals,
-        "init_albedo": np.full((2, 2), 100.0, f32), "usable": images > 0, "iterations": 1,
-        "tol": 0.0, "backend": "numba",
-    }
-    solve_hk(images, lights, intensities=np.ones(3), **common)
-    solve_hk(images, np.broadcast_to(lights[:, None, None, :], (3, 2, 2, 3)).astype(f32),
-             views=np.broadcast_to(f32([0.0, 0.0, 1.0]), (2, 2, 3)).copy(),
-             intensities=np.ones((3, 2, 2), f32), **common)
-    return time.perf_counter() - start
 
 
 @dataclass(frozen=True)
@@ -249,7 +217,8 @@ def solve_hk(
         (:mod:`fingerps_recon.hk_kernel`; needs numba); "numpy", the reference (vectorised
         passes over blocks of pixels); "auto", numba when it can be imported, else numpy.
         The same algorithm and minimum either way (results agree to float32 rounding). The
-        first numba call in a process compiles or loads the kernels (:func:`warm_up_hk`).
+        first numba call in a process compiles or loads the kernels
+        (:mod:`fingerps_recon.kernel_warm_up`).
 
     Returns
     -------

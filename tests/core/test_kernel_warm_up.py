@@ -1,0 +1,26 @@
+"""fingerps_recon.kernel_warm_up: every kernel the pipeline calls is ready afterwards."""
+
+from __future__ import annotations
+
+import time
+
+from fingerps_recon import kernel_warm_up
+from fingerps_recon.kernel_warm_up import KERNEL_MODULES, WarmUp, warm_up_kernels
+
+
+def test_warm_up_readies_every_kernel_and_a_second_call_compiles_nothing() -> None:
+    first = warm_up_kernels()
+    assert isinstance(first, WarmUp) and first.modules == KERNEL_MODULES
+    assert first.compiled + first.loaded > 0  # kernel versions compiled or loaded so far
+    start = time.perf_counter()
+    second = warm_up_kernels()
+    assert second.compiled == first.compiled  # nothing new to compile: the same signatures
+    assert time.perf_counter() - start < 5.0
+    assert first.summary.startswith("compiled" if first.compiled else "loaded")
+    assert second.summary.startswith(("loaded", "compiled"))
+
+
+def test_the_build_step_prints_one_line(capsys) -> None:
+    assert kernel_warm_up.main([]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("fingerps_recon kernels: ")
