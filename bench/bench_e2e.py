@@ -74,7 +74,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fingerps_driver.demo import executable
+from fingerps_driver.demo import DemoError, call_service, executable
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from ros_domain import own_ros_domain
@@ -282,16 +282,7 @@ class Observer:
 
     # --------------------------------------------------------------- services
     def call(self, client, request, *, timeout: float, what: str):
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise BenchError(f"{what}: service {client.srv_name} not available after "
-                             f"{timeout:.0f} s")
-        future = client.call_async(request)
-        deadline = time.monotonic() + timeout
-        while not future.done() and time.monotonic() < deadline:
-            time.sleep(0.01)
-        if not future.done():
-            raise BenchError(f"{what}: no answer from {client.srv_name} within {timeout:.0f} s")
-        return future.result()
+        return call_service(client, request, timeout=timeout, what=what)
 
     def set_driver(self, name: str, value: object) -> None:
         from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
@@ -507,7 +498,7 @@ def run_kiosk(env: dict[str, str], domain_id: int, home: Path) -> dict[str, floa
         lines.append("recon_node start -> first cloud: "
                      + ", ".join(f"{s:.1f}" for s in starts) + " s")
         figures["e2e.first_cloud_s"] = float(np.median(starts))
-    except BenchError as exc:
+    except (BenchError, DemoError) as exc:  # a step failed: say it with the nodes' logs
         logs = "\n".join(f"{name}:\n{graph.tail(name)}" for name in graph.logs)
         raise BenchError(f"{exc}\n{logs}") from None
     finally:

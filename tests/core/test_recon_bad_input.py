@@ -11,11 +11,8 @@ same ``PreparedCalibrations``.
 
 from __future__ import annotations
 
-import fcntl
 import math
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -359,31 +356,8 @@ def test_the_log_gate_lets_each_problem_through_once_per_period() -> None:
 
 
 # ------------------------------------------------------------------ the node's worker
-@pytest.fixture
-def isolated_domain(monkeypatch: pytest.MonkeyPatch):
-    """A ROS domain id of this test's own (the graph tests' lock files), localhost only."""
-    lock_dir = Path(tempfile.gettempdir()) / "fingerps_ros_domains"
-    lock_dir.mkdir(exist_ok=True)
-    for domain_id in range(101, 39, -1):
-        handle = open(lock_dir / f"{domain_id}.lock", "w")
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        break
-    else:
-        pytest.skip("no free ROS domain id")
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    try:
-        yield domain_id
-    finally:
-        fcntl.flock(handle, fcntl.LOCK_UN)
-        handle.close()
-
-
 def test_the_worker_survives_an_unexpected_error(
-        rig: SimulatedRig, images: np.ndarray, isolated_domain: int,
+        rig: SimulatedRig, images: np.ndarray, ros_domain: int,
         monkeypatch: pytest.MonkeyPatch) -> None:
     real = recon_node.reconstruct_burst
 
@@ -394,7 +368,7 @@ def test_the_worker_survives_an_unexpected_error(
 
     monkeypatch.setattr(recon_node, "reconstruct_burst", flaky)
     context = Context()
-    rclpy.init(context=context, domain_id=isolated_domain,
+    rclpy.init(context=context, domain_id=ros_domain,
                signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:

@@ -1,9 +1,6 @@
 """Fixtures for graph tests: real nodes in subprocesses, talking over DDS on this host only.
 
-- ``ros_domain``: a ROS_DOMAIN_ID of the test's own (100-200, held with a lock file so that
-  concurrent test runs on this machine never share one) and
-  ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, set in ``os.environ`` so child processes and
-  this process's rclpy both use them.
+- ``ros_domain`` (tests/conftest.py): a ROS domain of the test's own, localhost only.
 - ``ros_node``: an rclpy node of the test process in a context of its own (initialised after
   ``ros_domain``, without signal handlers), destroyed at teardown.
 - ``start_node(package, executable, *args)``: starts ``install/<pkg>/lib/<pkg>/<exe>`` (built
@@ -14,12 +11,9 @@
 
 from __future__ import annotations
 
-import fcntl
 import os
-import random
 import signal
 import subprocess
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -33,7 +27,6 @@ from rclpy.signals import SignalHandlerOptions
 
 REPO = Path(__file__).resolve().parents[2]
 INSTALL = REPO / "install"
-DOMAIN_RANGE = range(40, 102)  # Fast DDS ports of ids above 101 can collide with ephemeral ports
 START_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 20.0
 
@@ -55,34 +48,6 @@ def wait_until(condition: Callable[[], object], what: str, *, timeout: float = 2
 def wait_for() -> Callable[..., object]:
     """``wait_for(condition, what, timeout=20.0)``: poll until truthy, else fail the test."""
     return wait_until
-
-
-@pytest.fixture
-def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
-    """A ROS domain of this test's own, on localhost only; returns its id."""
-    lock_dir = Path(tempfile.gettempdir()) / "fingerps_ros_domains"
-    lock_dir.mkdir(exist_ok=True)
-    candidates = list(DOMAIN_RANGE)
-    random.shuffle(candidates)
-    for domain_id in candidates:
-        handle = open(lock_dir / f"{domain_id}.lock", "w")  # held until teardown
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        break
-    else:
-        pytest.fail(f"every ROS domain id in {DOMAIN_RANGE} is held by another test run")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.delenv("ROS_STATIC_PEERS", raising=False)
-    monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
-    try:
-        yield domain_id
-    finally:
-        fcntl.flock(handle, fcntl.LOCK_UN)
-        handle.close()
 
 
 @pytest.fixture

@@ -93,6 +93,21 @@ def _stamp_ns(msg: Image | PointCloud2) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
+def call_service(client, request, *, timeout: float, what: str):
+    """Call a service whose node another thread spins; return the response, or raise
+    DemoError naming ``what``."""
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise DemoError(f"{what}: service {client.srv_name} not available after "
+                        f"{timeout:.0f} s; see the node's log above")
+    future = client.call_async(request)
+    deadline = time.monotonic() + timeout
+    while not future.done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    if not future.done():
+        raise DemoError(f"{what}: no answer from {client.srv_name} within {timeout:.0f} s")
+    return future.result()
+
+
 class DemoClient(Node):
     """Calls the graph's services and collects its outputs."""
 
@@ -134,17 +149,8 @@ class DemoClient(Node):
             self.received.clouds[stamp] = cloud_to_points(msg)
 
     def call(self, client, request, *, timeout: float, what: str):
-        """Call a service and return its response, or raise DemoError naming ``what``."""
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise DemoError(f"{what}: service {client.srv_name} not available after "
-                            f"{timeout:.0f} s; see the node's log above")
-        future = client.call_async(request)
-        deadline = time.monotonic() + timeout
-        while not future.done() and time.monotonic() < deadline:
-            time.sleep(0.01)
-        if not future.done():
-            raise DemoError(f"{what}: no answer from {client.srv_name} within {timeout:.0f} s")
-        return future.result()
+        """:func:`call_service` (the node is spun by another thread)."""
+        return call_service(client, request, timeout=timeout, what=what)
 
     def set_scene(self, scene: str) -> None:
         """Put an object in front of the simulated camera (the driver's sim.scene)."""
