@@ -32,6 +32,8 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -64,6 +66,7 @@ class StartupError(Exception):
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+EXIT_GRACE_S = 5.0  # after the node's resources are closed, the interpreter's exit at most
 SPIN_SLICE_S = 0.5
 
 
@@ -109,6 +112,23 @@ class StopSignals:
             signal.signal(signum, signal.SIG_IGN)
 
 
+def _exit_anyway_after(seconds: float, code: int) -> None:
+    """The node's resources are closed: if the interpreter has not exited ``seconds`` later
+    (a thread of the executor's pool, say, stuck in a library call), end the process with
+    ``code`` all the same, so a stop never hangs. A daemon thread: a normal exit ends it."""
+    def exit_now() -> None:
+        time.sleep(seconds)
+        _write_stderr(f"process still running {seconds:g} s after its node stopped: exiting\n")
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+
+    threading.Thread(target=exit_now, name="exit_anyway", daemon=True).start()
+
+
 def _write_stderr(text: str) -> None:
     try:
         os.write(2, text.encode())
@@ -131,14 +151,18 @@ def run_node(
     """
     signals = StopSignals(name)
     signals.install()
+    code = 1  # an exception nobody expected ends the process with 1
     try:
-        return _run(make_node, signals, args=args, name=name, executor=executor,
+        code = _run(make_node, signals, args=args, name=name, executor=executor,
                     expected_errors=expected_errors)
+        return code
     except KeyboardInterrupt:  # a signal while starting, before a node existed
-        return 0
+        code = 0
+        return code
     finally:
         signals.stopping()
         signals.ignore_until_exit()
+        _exit_anyway_after(EXIT_GRACE_S, code)
 
 
 def _run(
