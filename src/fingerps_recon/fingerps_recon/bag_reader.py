@@ -1,11 +1,12 @@
 """Reading a fingerps session bag: messages by topic, deserialised, schemas checked.
 
-`SessionBagReader` reads a bag directory (its one ``.mcap``) or an ``.mcap`` file in file
-order with `fingerps_recon.mcap_records.McapScan`, so it reads finished bags, bags of a
-killed recorder (no summary) and damaged ones: a damaged chunk is skipped and reading goes
-on with the next intact one (channels defined in a damaged chunk come from the summary), so
-every intact message is yielded; then, by default, `McapDamageError` names the damaged byte
-ranges (``raise_on_damage=False`` only records them in `SessionBagReader.damage`).
+`SessionBagReader` reads a bag directory (its ``.mcap`` pieces in order: one, or several
+when the recorder split the bag) or an ``.mcap`` file in file order with
+`fingerps_recon.mcap_records.McapScan`, so it reads finished bags, bags of a killed recorder
+(no summary) and damaged ones: a damaged chunk is skipped and reading goes on with the next
+intact one (channels defined in a damaged chunk come from the summary), so every intact
+message is yielded; then, by default, `McapDamageError` names the damaged byte ranges
+(``raise_on_damage=False`` only records them in `SessionBagReader.damage`).
 
 Schema check: the schema text of every ``fingerps_msgs`` type in the bag must equal the full
 definition of the installed type (`fingerps_recon.message_definition`); a bag recorded with
@@ -28,7 +29,7 @@ from typing import Any
 from mcap.records import Channel, Message, Schema
 from rclpy.serialization import deserialize_message
 
-from fingerps_recon.bag_recovery import find_mcap
+from fingerps_recon.bag_recovery import bag_pieces
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.mcap_records import DamagedRange, McapScan, damage_error
 from fingerps_recon.message_definition import (
@@ -131,7 +132,8 @@ class SessionBagReader:
     Parameters
     ----------
     path : str or os.PathLike
-        A bag directory or an ``.mcap`` file.
+        A bag directory (every piece, in order: `fingerps_recon.bag_recovery.bag_pieces`)
+        or an ``.mcap`` file.
     check_schemas : bool
         Refuse fingerps_msgs schemas that differ from the installed ones (`check_schema`).
     raise_on_damage : bool
@@ -141,20 +143,22 @@ class SessionBagReader:
 
     def __init__(self, path: str | os.PathLike[str], *, check_schemas: bool = True,
                  raise_on_damage: bool = True) -> None:
-        self.mcap_path = find_mcap(path)
+        self.mcap_paths = bag_pieces(path)
+        self.mcap_path = self.mcap_paths[0]
         self._check = check_schemas
         self._raise = raise_on_damage
-        self._scan: McapScan | None = None
+        self._scans: list[McapScan] = []
 
     @property
     def damage(self) -> tuple[DamagedRange, ...]:
-        """Damaged byte ranges met by the last complete `messages` pass (empty before)."""
-        return () if self._scan is None else tuple(self._scan.damage)
+        """Damaged byte ranges met by the last complete `messages` pass (empty before), in
+        piece order; each error names its file."""
+        return tuple(d for scan in self._scans for d in scan.damage)
 
     @property
     def orphaned_messages(self) -> int:
         """Intact messages of the last pass whose channel is defined nowhere readable."""
-        return 0 if self._scan is None else sum(self._scan.orphans.values())
+        return sum(sum(scan.orphans.values()) for scan in self._scans)
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Yield the messages (of the given topics only, when given) in file order.
@@ -170,15 +174,26 @@ class SessionBagReader:
             False), naming every damaged byte range.
         """
         wanted = None if topics is None else set(topics)
+        scans = []
+        for mcap_path in self.mcap_paths:
+            scan = McapScan(mcap_path)
+            yield from self._piece_messages(scan, wanted)
+            scans.append(scan)
+        self._scans = scans
+        damaged = [scan for scan in scans if scan.damage or scan.orphans]
+        if self._raise and damaged:
+            raise damage_error(damaged[0])
+
+    def _piece_messages(self, scan: McapScan, wanted: set[str] | None) -> Iterator[BagMessage]:
+        """The messages of one MCAP file (schema and channel ids are the file's own)."""
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
-        scan = McapScan(self.mcap_path)
         for item in scan:
             record = item.record
             if isinstance(record, Schema):
                 if self._check:
                     check_schema(record.name, record.data.decode("utf-8", errors="replace"),
-                                 source=str(self.mcap_path))
+                                 source=str(scan.path))
                 schemas[record.id] = record
             elif isinstance(record, Channel):
                 channels[record.id] = record
@@ -192,27 +207,26 @@ class SessionBagReader:
                     log_time_ns=record.log_time, publish_time_ns=record.publish_time,
                     data=record.data,
                     offered_qos_yaml=channel.metadata.get("offered_qos_profiles", "[]"))
-        self._scan = scan
-        if self._raise and (scan.damage or scan.orphans):
-            raise damage_error(scan)
 
     def topics(self) -> dict[str, str]:
-        """Topic -> type name of every channel, damaged chunks' ones from the summary (reads
-        the whole file unless the summary is intact)."""
-        scan = McapScan(self.mcap_path)
-        summary = scan.summary
-        if summary.source == "footer" and summary.channels:
-            return {ch.topic: (summary.schemas[ch.schema_id].name
-                               if ch.schema_id in summary.schemas else "")
-                    for ch in summary.channels.values()}
+        """Topic -> type name of every channel of every piece, damaged chunks' ones from the
+        summary (reads a whole piece unless its summary is intact)."""
         found: dict[str, str] = {}
-        schemas: dict[int, str] = {}
-        for item in scan:
-            record = item.record
-            if isinstance(record, Schema):
-                schemas[record.id] = record.name
-            elif isinstance(record, Channel):
-                found.setdefault(record.topic, schemas.get(record.schema_id, ""))
+        for mcap_path in self.mcap_paths:
+            scan = McapScan(mcap_path)
+            summary = scan.summary
+            if summary.source == "footer" and summary.channels:
+                for ch in summary.channels.values():
+                    found.setdefault(ch.topic, summary.schemas[ch.schema_id].name
+                                     if ch.schema_id in summary.schemas else "")
+                continue
+            schemas: dict[int, str] = {}
+            for item in scan:
+                record = item.record
+                if isinstance(record, Schema):
+                    schemas[record.id] = record.name
+                elif isinstance(record, Channel):
+                    found.setdefault(record.topic, schemas.get(record.schema_id, ""))
         return found
 
     def latest(self, topic: str) -> Any | None:

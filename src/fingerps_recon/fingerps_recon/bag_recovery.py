@@ -21,17 +21,21 @@ No rclpy here.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import yaml
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.mcap_records import DamagedRange, McapScan, McapSummary
 from fingerps_recon.message_definition import MessageDefinition
 from fingerps_recon.session_bag import (
+    METADATA_FILENAME,
     ROSBAG2_METADATA_RECORD,
     SessionBagError,
     SessionBagWriter,
@@ -176,24 +180,56 @@ class RecoveryReport:
         return "\n".join(lines)
 
 
-def find_mcap(source: str | os.PathLike[str]) -> Path:
-    """The MCAP file of a bag: ``source`` itself, or the single ``*.mcap`` in a directory.
+def bag_pieces(source: str | os.PathLike[str]) -> list[Path]:
+    """The MCAP files of a bag, in order.
+
+    ``source`` itself when it is a file. In a bag directory: the files its metadata.yaml
+    lists (``relative_file_paths``) when it has one, else every ``*.mcap`` in the order of
+    the ``_<n>`` index rosbag2 gives split pieces (a killed recorder writes no metadata.yaml).
 
     Raises
     ------
     BagRecoveryError
-        When there is no such file, or a directory holds several.
+        When there is no such path, no ``.mcap`` file, or a piece metadata.yaml lists is
+        missing.
     """
     path = Path(source)
-    if path.is_dir():
-        files = sorted(path.glob("*.mcap"))
-        if len(files) != 1:
-            raise BagRecoveryError(
-                f"{path} holds {len(files)} .mcap files; give the file to recover itself")
-        return files[0]
-    if not path.is_file():
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
         raise BagRecoveryError(f"{path} does not exist; give a bag directory or an .mcap file")
-    return path
+    listed = _listed_pieces(path / METADATA_FILENAME)
+    if listed:
+        missing = [name for name in listed if not (path / name).is_file()]
+        if missing:
+            raise BagRecoveryError(
+                f"{path}: metadata.yaml lists {', '.join(missing)}, which "
+                f"{'is' if len(missing) == 1 else 'are'} missing (deleted or moved); read or "
+                "recover the pieces that are there by giving each .mcap file")
+        return [path / name for name in listed]
+    files = sorted(path.glob("*.mcap"), key=_piece_order)
+    if not files:
+        raise BagRecoveryError(f"{path} holds no .mcap file; give a bag directory or an .mcap "
+                               "file")
+    return files
+
+
+def _listed_pieces(metadata_path: Path) -> list[str]:
+    """``relative_file_paths`` of a readable metadata.yaml ([] when absent or unreadable:
+    the directory is then read by its file names)."""
+    try:
+        document = yaml.safe_load(metadata_path.read_text(encoding="utf-8"))
+        names = document["rosbag2_bagfile_information"]["relative_file_paths"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return []
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        return []
+    return [Path(name).name for name in names]
+
+
+def _piece_order(path: Path) -> tuple[int, str]:
+    match = re.search(r"_(\d+)$", path.stem)
+    return (int(match.group(1)) if match else 1 << 62, path.name)
 
 
 def default_destination(source: str | os.PathLike[str]) -> Path:
@@ -209,10 +245,13 @@ def recover_bag(source: str | os.PathLike[str],
                 destination: str | os.PathLike[str]) -> RecoveryReport:
     """Copy every intact record of a (possibly damaged) bag into a new, valid bag.
 
+    A bag split into pieces (``DIR_0.mcap``, ``DIR_1.mcap``, ...) is recovered piece by piece
+    into one MCAP file; the report adds the pieces up (damage reasons name their piece).
+
     Parameters
     ----------
     source : str or os.PathLike
-        A bag directory (its one ``.mcap``) or an ``.mcap`` file.
+        A bag directory (every piece: `bag_pieces`) or an ``.mcap`` file.
     destination : str or os.PathLike
         The bag directory to create; it must not exist.
 
@@ -226,30 +265,37 @@ def recover_bag(source: str | os.PathLike[str],
     BagRecoveryError
         When the source cannot be found, is not an MCAP file, or the destination exists.
     """
-    mcap_path = find_mcap(source)
+    pieces = bag_pieces(source)
     destination = Path(destination)
     if destination.exists():
         raise BagRecoveryError(f"{destination} already exists; choose another destination")
-    file_size = mcap_path.stat().st_size
-    with open(mcap_path, "rb") as stream:
-        if stream.read(8) != b"\x89MCAP0\r\n":
-            raise BagRecoveryError(f"{mcap_path} is not an MCAP file (no MCAP magic at its "
-                                   "start); nothing to recover")
-    scan = McapScan(mcap_path)
-    copier = _Copier()
+    for mcap_path in pieces:
+        with open(mcap_path, "rb") as stream:
+            if stream.read(8) != b"\x89MCAP0\r\n":
+                raise BagRecoveryError(f"{mcap_path} is not an MCAP file (no MCAP magic at its "
+                                       "start); nothing to recover")
     writer = SessionBagWriter(destination)
     writer.start()
     try:
-        for item in scan:
-            copier.copy(item.record, writer, from_summary=item.from_summary)
-        summary = scan.summary if (scan.damage or scan.orphans or copier.undecodable) \
-            else McapSummary()
-        report = _report(scan, summary, copier, mcap_path, destination, file_size,
-                         writer.message_counts)
-        for item in copier.metadata:
+        reports: list[RecoveryReport] = []
+        metadata: dict[tuple[str, str], Metadata] = {}  # each piece repeats the records
+        for mcap_path in pieces:
+            scan = McapScan(mcap_path)
+            copier = _Copier()
+            for item in scan:
+                copier.copy(item.record, writer, from_summary=item.from_summary)
+            summary = scan.summary if (scan.damage or scan.orphans or copier.undecodable) \
+                else McapSummary()
+            reports.append(_report(scan, summary, copier, mcap_path, destination,
+                                   mcap_path.stat().st_size, {}))
+            for item in copier.metadata:
+                metadata.setdefault((item.name, json.dumps(item.metadata, sort_keys=True)), item)
+        report = _combined(reports, Path(source) if len(pieces) > 1 else pieces[0],
+                           writer.message_counts)
+        for item in metadata.values():
             writer.add_metadata(item.name, item.metadata)
         writer.add_metadata(RECOVERY_METADATA_RECORD, {
-            "source": str(mcap_path), "file_size": str(file_size),
+            "source": str(report.source), "file_size": str(report.file_size),
             "kept_bytes": str(report.kept_bytes),
             "damage_offset": "" if report.damage_offset is None else str(report.damage_offset),
             "damage_reason": report.damage_reason,
@@ -262,6 +308,34 @@ def recover_bag(source: str | os.PathLike[str],
     finally:
         writer.finish()
     return report
+
+
+def _combined(reports: list[RecoveryReport], source: Path,
+              counts: dict[str, int]) -> RecoveryReport:
+    """One report for the pieces of a bag (the single piece's own when there is one)."""
+    if len(reports) == 1:
+        return dataclasses.replace(reports[0], message_counts=counts)
+
+    def added(field_name: str) -> dict[str, int]:
+        total: dict[str, int] = {}
+        for report in reports:
+            for key, n in getattr(report, field_name).items():
+                total[key] = total.get(key, 0) + n
+        return total
+
+    return RecoveryReport(
+        source=source, destination=reports[0].destination,
+        file_size=sum(r.file_size for r in reports), message_counts=counts,
+        finished=all(r.finished for r in reports),
+        damage=tuple(dataclasses.replace(d, reason=f"{r.source.name}: {d.reason}")
+                     for r in reports for d in r.damage),
+        lost_counts=added("lost_counts"), lost_exact=all(r.lost_exact for r in reports),
+        chunks_kept=sum(r.chunks_kept for r in reports),
+        chunks_lost=sum(r.chunks_lost for r in reports),
+        summary_source=reports[-1].summary_source,
+        definitions_from_summary=tuple(t for r in reports for t in r.definitions_from_summary),
+        lost_spans_ns=tuple(s for r in reports for s in r.lost_spans_ns),
+        undecodable=added("undecodable"))
 
 
 def _report(scan: McapScan, summary: McapSummary, copier: _Copier, mcap_path: Path,
@@ -343,7 +417,8 @@ class _Copier:
                     self.undecodable[record.channel_id] = \
                         self.undecodable.get(record.channel_id, 0) + 1
                     return
-                _add_channel(channel, schema, writer)
+                if not writer.has_topic(channel.topic):  # a later piece repeats channels
+                    _add_channel(channel, schema, writer)
                 self.added.add(record.channel_id)
             writer.write(channel.topic, record.data, log_time_ns=record.log_time,
                          publish_time_ns=record.publish_time, sequence=record.sequence)

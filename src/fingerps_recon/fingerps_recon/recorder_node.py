@@ -4,8 +4,23 @@ Subscribes to the session topics with ``raw=True`` (the serialized CDR bytes are
 they arrive, nothing is deserialized) using each topic's QoS from `fingerps_recon.qos`
 (calibration topics reliable + transient-local, so the calibration in force when recording
 starts is recorded too), and writes them with `fingerps_recon.session_bag.SessionBagWriter`
-into ``<bags_dir>/<session_name>/`` (``metadata.yaml`` + ``<session_name>_0.mcap``), which
-``ros2 bag info/play``, rosbags and Foxglove read.
+into ``<bags_dir>/<session_name>/`` (``metadata.yaml`` + ``<session_name>_0.mcap``, and
+``_1.mcap``, ... when split), which ``ros2 bag info/play``, rosbags and Foxglove read.
+
+At kiosk scale: ``max_bagfile_size`` / ``max_bagfile_duration`` split the bag into pieces as
+rosbag2's options of the same names do (each piece a complete MCAP file, all listed in
+metadata.yaml), and ``bags_dir_limit_mb`` caps the sessions in ``bags_dir``: the oldest whole
+sessions are removed first (`fingerps_recon.session_retention`), at start, at each new piece
+and every ``RETENTION_PERIOD_S`` seconds, never the session being recorded.
+
+Nothing is lost silently. A message the recorder subscribed to and did not write is counted
+per topic and reason: ``lost_before_recorder`` (skipped in the publisher's sequence numbers,
+`fingerps_recon.sequence_gaps`: DDS overwrote or missed it before the recorder took it),
+``dropped_writer_behind`` (the write queue was full), ``write_errors``, ``unrecordable``
+(the bag refused the topic). The counts are on ``/diagnostics`` (status ``recorder:
+recording``, WARN while losses keep happening, ERROR while writes fail) and in the finished
+bag: metadata.yaml's ``custom_data`` ``fingerps.not_written`` and the MCAP metadata record
+``fingerps.recorder.not_written``.
 
 Threads: a subscription callback only stamps the message and appends it to a queue (on a
 topic's first message it also registers the topic, with the publishers' QoS as the graph
@@ -44,6 +59,7 @@ from typing import Any
 
 import rclpy.logging
 from ament_index_python.packages import get_package_share_directory
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.utilities import get_rmw_implementation_identifier
@@ -53,15 +69,23 @@ from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.message_definition import load_message_definition, split_type_name
 from fingerps_recon.node_runner import run_node
 from fingerps_recon.parameters import ParameterChecks, descriptor
+from fingerps_recon.sequence_gaps import SequenceGaps
 from fingerps_recon.session_bag import (
     DEFAULT_CHUNK_SIZE,
+    NS_PER_S,
     QosProfileFields,
     SessionBagError,
     SessionBagWriter,
     qos_profiles_yaml,
 )
+from fingerps_recon.session_retention import RetentionResult, enforce_limit
 
 PACKAGE = "fingerps_recon"
+RETENTION_PERIOD_S = 10.0
+"""How often the writer thread checks ``bags_dir_limit_mb`` between pieces."""
+HEALTH_WINDOW_S = 10.0
+"""/diagnostics warns while messages went unwritten within this many seconds."""
+MiB = 1024 * 1024
 
 
 @dataclass(frozen=True)
@@ -226,6 +250,18 @@ class RecorderNode(Node):
             "Megabytes of messages waiting for the writer; beyond this the oldest are "
             "dropped (and counted)", min_value=1, max_value=65536, integer=True,
             read_only=True))
+        p("max_bagfile_size", 0, descriptor(
+            "Bytes after which the bag goes on in a new MCAP file <session_name>_<n>.mcap "
+            "(rosbag2's max_bagfile_size); 0 = one file", min_value=0,
+            max_value=2**50, integer=True, read_only=True))
+        p("max_bagfile_duration", 0, descriptor(
+            "Seconds of messages after which the bag goes on in a new MCAP file (rosbag2's "
+            "max_bagfile_duration); 0 = no limit", min_value=0, max_value=10**7,
+            integer=True, read_only=True))
+        p("bags_dir_limit_mb", 0, descriptor(
+            "Megabytes the sessions in bags_dir may add up to; beyond it the oldest whole "
+            "sessions are removed, never the one being recorded; 0 = no limit",
+            min_value=0, max_value=2**30, integer=True, read_only=True))
 
         self._checks.refuse_unknown_overrides(self)
 
@@ -236,19 +272,32 @@ class RecorderNode(Node):
         for type_name in sorted({spec.type_name for spec in self._record.values()}):
             load_message_definition(type_name)  # fail now, not at the first message
         classes = {topic: _message_class(spec.type_name) for topic, spec in self._record.items()}
-        bag_path = Path(str(self.get_parameter("bags_dir").value)) / str(
-            self.get_parameter("session_name").value)
+        self._bags_dir = Path(str(self.get_parameter("bags_dir").value))
+        bag_path = self._bags_dir / str(self.get_parameter("session_name").value)
+        self._limit_bytes = int(self.get_parameter("bags_dir_limit_mb").value) * MiB
         self._bag = SessionBagWriter(
             bag_path, chunk_size=int(self.get_parameter("chunk_size").value),
-            ros_distro=os.environ.get("ROS_DISTRO") or "jazzy")
+            ros_distro=os.environ.get("ROS_DISTRO") or "jazzy",
+            max_bagfile_size=int(self.get_parameter("max_bagfile_size").value),
+            max_bagfile_duration_ns=int(self.get_parameter("max_bagfile_duration").value)
+            * NS_PER_S)
         self._finished = False
         self._received = 0
-        self._write_errors = 0
+        self._write_errors: dict[str, int] = {}
+        self._unrecordable_messages: dict[str, int] = {}
+        self._gaps = SequenceGaps()
+        self._last_loss = -1.0  # monotonic time of the last message not written
+        self._last_write_error = -1.0
+        self._retention = RetentionResult()
+        self._sessions_removed = 0
+        self._enforce_retention()  # room for this session before it starts
         self._queue = _WriteQueue(int(self.get_parameter("queue_limit_mb").value) * 1024 * 1024)
         self._subscriptions_made: list[Any] = []
         self._registered: set[str] = set()  # topics added to the bag (callback thread only)
         self._unrecordable: set[str] = set()  # topics the bag refused (logged once)
         self._worker = threading.Thread(target=self._work, name="recorder_writer")
+        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        self.create_timer(1.0, self._publish_diagnostics)
 
         self._bag.start()
         try:
@@ -336,11 +385,20 @@ class RecorderNode(Node):
         else:
             received = int(info.get("received_timestamp", 0)) or time.time_ns()
         source = int(info.get("source_timestamp", 0))
+        self._received += 1
+        if self._gaps.observe(topic, info.get("publication_sequence_number"),
+                              self.count_publishers(topic)):
+            self._last_loss = time.monotonic()
+            self.get_logger().warning(
+                f"messages lost before the recorder took them: {self._gaps.lost} so far (the "
+                "recorder's process is too slow or starved of CPU)", throttle_duration_sec=5.0)
         if topic not in self._registered and not self._add_topic(topic):
+            self._unrecordable_messages[topic] = self._unrecordable_messages.get(topic, 0) + 1
+            self._last_loss = time.monotonic()
             return
         dropped = self._queue.put(_Pending(topic, bytes(data), received, source))
-        self._received += 1
         if dropped:
+            self._last_loss = time.monotonic()
             self.get_logger().warning(
                 f"the bag writer is behind: dropped {sum(self._queue.dropped.values())} "
                 "messages so far (raise queue_limit_mb or record_outputs:=false)",
@@ -371,7 +429,8 @@ class RecorderNode(Node):
 
     # ------------------------------------------------------------------ writer thread
     def _work(self) -> None:
-        last_flush = time.monotonic()
+        last_flush = last_retention = time.monotonic()
+        pieces = 0
         while True:
             items, closed = self._queue.take_all(timeout=0.2)
             for item in items:
@@ -379,8 +438,21 @@ class RecorderNode(Node):
                     self._bag.write(item.topic, item.data, log_time_ns=item.log_time_ns,
                                     publish_time_ns=item.publish_time_ns)
                 except SessionBagError as err:
-                    self._write_errors += 1
+                    self._write_errors[item.topic] = self._write_errors.get(item.topic, 0) + 1
+                    self._last_write_error = self._last_loss = time.monotonic()
                     self._shutdown_logger.error(f"{err}", throttle_duration_sec=5.0)
+            finished = self._bag.pieces
+            new_piece = len(finished) != pieces
+            if new_piece:
+                pieces = len(finished)
+                self._shutdown_logger.info(
+                    f"bag piece {finished[-1].path.name} finished ({finished[-1].message_count} "
+                    f"messages, {finished[-1].size_bytes / MiB:.1f} MiB); going on in "
+                    f"{self._bag.mcap_path.name}")
+            if self._limit_bytes and (new_piece or
+                                      time.monotonic() - last_retention >= RETENTION_PERIOD_S):
+                self._enforce_retention()
+                last_retention = time.monotonic()
             period = float(self.get_parameter("flush_period").value)
             if period > 0.0 and time.monotonic() - last_flush >= period:
                 try:
@@ -403,18 +475,99 @@ class RecorderNode(Node):
         if self._worker.ident is not None:  # started
             self._worker.join()
         log = self.get_logger() if self.context.ok() else self._shutdown_logger
+        not_written = self.not_written()
+        record = {topic: json.dumps(reasons) for topic, reasons in not_written.items()}
         try:
+            if self._bag.is_open:
+                self._bag.add_metadata("fingerps.recorder.not_written", record)
+            self._bag.set_custom_data("fingerps.not_written", json.dumps(not_written))
             summary = self._bag.finish()
         except SessionBagError as err:
             log.error(str(err))
             return
         counts = ", ".join(f"{topic}: {count}" for topic, count in summary.message_counts.items())
-        log.info(f"bag {summary.path.resolve()}: {summary.message_count} messages"
+        pieces = f" in {len(summary.pieces)} pieces" if len(summary.pieces) > 1 else ""
+        log.info(f"bag {summary.path.resolve()}: {summary.message_count} messages{pieces}"
                  f"{' (' + counts + ')' if counts else ''}")
-        dropped = sum(self._queue.dropped.values())
-        if dropped or self._write_errors:
-            log.warning(f"{dropped} messages dropped (writer behind: "
-                        f"{self._queue.dropped}), {self._write_errors} write errors")
+        if not_written:
+            total = sum(sum(reasons.values()) for reasons in not_written.values())
+            log.warning(f"{total} messages subscribed to were not written: {not_written}")
+
+    def not_written(self) -> dict[str, dict[str, int]]:
+        """Messages subscribed to and not written, per topic and reason (no zero entries)."""
+        reasons = {"lost_before_recorder": self._gaps.lost,
+                   "dropped_writer_behind": self._queue.dropped,
+                   "write_errors": self._write_errors,
+                   "unrecordable": self._unrecordable_messages}
+        table: dict[str, dict[str, int]] = {}
+        for reason, per_topic in reasons.items():
+            for topic, count in dict(per_topic).items():
+                if count:
+                    table.setdefault(topic, {})[reason] = count
+        return table
+
+    def _enforce_retention(self) -> None:
+        """Keep bags_dir within bags_dir_limit_mb (oldest sessions first), log what went."""
+        if not self._limit_bytes:
+            return
+        result = enforce_limit(self._bags_dir, self._limit_bytes, keep=self._bag.path)
+        self._retention = result
+        self._sessions_removed += len(result.removed)
+        for session in result.removed:
+            self._shutdown_logger.warning(
+                f"bags_dir_limit_mb: removed the oldest session {session.path} "
+                f"({session.size_bytes / MiB:.1f} MiB)")
+        for failure in result.failed:
+            self._shutdown_logger.error(f"bags_dir_limit_mb: cannot remove {failure}",
+                                        throttle_duration_sec=60.0)
+        if result.total_bytes > self._limit_bytes:
+            self._shutdown_logger.warning(
+                f"bags_dir {self._bags_dir} holds {result.total_bytes / MiB:.0f} MiB of "
+                f"sessions, more than bags_dir_limit_mb {self._limit_bytes // MiB}, with no "
+                "older session left to remove (this session alone is larger; set "
+                "max_bagfile_size and a larger limit, or record_outputs:=false)",
+                throttle_duration_sec=60.0)
+
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        not_written = self.not_written()
+        by_reason: dict[str, int] = {}
+        for reasons in not_written.values():
+            for reason, count in reasons.items():
+                by_reason[reason] = by_reason.get(reason, 0) + count
+        total = sum(by_reason.values())
+        status = DiagnosticStatus(name=f"{self.get_name()}: recording")
+        if self._last_write_error >= 0 and now - self._last_write_error < HEALTH_WINDOW_S:
+            status.level = DiagnosticStatus.ERROR
+            status.message = "writing the bag fails (see the log)"
+        elif self._last_loss >= 0 and now - self._last_loss < HEALTH_WINDOW_S:
+            status.level = DiagnosticStatus.WARN
+            status.message = f"{total} messages not written so far"
+        elif self._limit_bytes and self._retention.total_bytes > self._limit_bytes:
+            status.level = DiagnosticStatus.WARN
+            status.message = "bags_dir is over bags_dir_limit_mb with nothing left to remove"
+        else:
+            status.level = DiagnosticStatus.OK
+            status.message = "ok"
+        written = sum(self._bag.message_counts.values())
+        status.values = [
+            KeyValue(key="messages_received", value=str(self._received)),
+            KeyValue(key="messages_written", value=str(written)),
+            KeyValue(key="not_written", value=str(total)),
+            *(KeyValue(key=reason, value=str(by_reason.get(reason, 0)))
+              for reason in ("lost_before_recorder", "dropped_writer_behind", "write_errors",
+                             "unrecordable")),
+            KeyValue(key="not_written_by_topic", value=json.dumps(not_written)),
+            KeyValue(key="bag", value=str(self._bag.path)),
+            KeyValue(key="bag_pieces", value=str(len(self._bag.pieces) + self._bag.is_open)),
+            KeyValue(key="bag_bytes", value=str(self._bag.bytes_written)),
+            KeyValue(key="bags_dir_bytes", value=str(self._retention.total_bytes)),
+            KeyValue(key="bags_dir_limit_bytes", value=str(self._limit_bytes)),
+            KeyValue(key="sessions_removed", value=str(self._sessions_removed)),
+        ]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diag.publish(array)
 
     def destroy_node(self) -> None:
         """Finish the bag (so SIGINT and SIGTERM leave a valid bag), then destroy the node."""

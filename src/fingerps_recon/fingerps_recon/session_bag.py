@@ -5,6 +5,7 @@
 
     DIR/
       DIR_0.mcap       # MCAP, profile "ros2", chunked and zstd-compressed, with summary
+      DIR_1.mcap ...   # further pieces when the bag is split (max_bagfile_size/duration)
       metadata.yaml    # rosbag2_bagfile_information, version 9, written by finish()
 
 so ``ros2 bag info/play``, rosbags, Foxglove and the ``mcap`` tools read it. What matches
@@ -24,8 +25,17 @@ sequential_writer.cpp, rosbag2_storage yaml.hpp and qos.cpp):
   chunks, as with rosbag2's ``zstd_fast`` preset), relative_file_paths, files, custom_data,
   ros_distro.
 
+Splitting, as rosbag2's ``max_bagfile_size`` / ``max_bagfile_duration``: before a message
+is written, the open piece is finished (summary and ``rosbag2`` record) and ``DIR_<n+1>.mcap``
+begun when the piece already holds a message and its size on disk has reached
+``max_bagfile_size`` bytes, or the message's log time is ``max_bagfile_duration`` or more past
+the piece's first message (0 = no limit). Every piece is a complete MCAP file on its own:
+each repeats the Schema, Channel and Metadata records, so a piece can be read, copied or
+deleted alone. metadata.yaml lists every piece in ``relative_file_paths`` and ``files``.
+Sizes count what reached the file, so a piece ends at most one chunk past the limit.
+
 Differences from rosbag2: a topic enters the bag when it is added (the recorder adds it at
-its first message); no bag splitting; CRCs of chunks are written (rosbag2 leaves them out).
+its first message); CRCs of chunks are written (rosbag2 leaves them out).
 
 Crash behaviour: messages gather in an open chunk of at most ``chunk_size`` bytes
 (`DEFAULT_CHUNK_SIZE`, 4 MiB); a full chunk is compressed and handed to the operating system
@@ -302,7 +312,34 @@ class _Topic:
     offered_qos: list[Any]
     type_hash: str
     channel_id: int
+    definition: MessageDefinition
+    channel_metadata: dict[str, str]
     message_count: int = 0
+
+
+@dataclass(frozen=True)
+class BagPiece:
+    """One MCAP file of a bag, as metadata.yaml's ``files`` lists it.
+
+    Attributes
+    ----------
+    path : Path
+        The MCAP file.
+    starting_time_ns : int
+        Earliest log time in it (`INT64_MAX` without messages).
+    duration_ns : int
+        Latest minus earliest log time.
+    message_count : int
+        Messages in it.
+    size_bytes : int
+        Bytes of the finished file.
+    """
+
+    path: Path
+    starting_time_ns: int = INT64_MAX
+    duration_ns: int = 0
+    message_count: int = 0
+    size_bytes: int = 0
 
 
 @dataclass(frozen=True)
@@ -314,7 +351,9 @@ class BagSummary:
     path : Path
         The bag directory.
     mcap_path : Path
-        The MCAP file in it.
+        Its first MCAP file (``DIR_0.mcap``).
+    pieces : tuple[BagPiece, ...]
+        Every MCAP file of the bag, in order (one unless the bag was split).
     message_counts : dict[str, int]
         Messages per topic, in the order the topics were added.
     message_count : int
@@ -327,6 +366,7 @@ class BagSummary:
 
     path: Path
     mcap_path: Path
+    pieces: tuple[BagPiece, ...] = ()
     message_counts: dict[str, int] = field(default_factory=dict)
     message_count: int = 0
     starting_time_ns: int = INT64_MAX
@@ -353,6 +393,10 @@ class SessionBagWriter:
         rosbag2's ``custom_data`` of metadata.yaml.
     library : str, optional
         The MCAP header's library string.
+    max_bagfile_size : int
+        Split into a new MCAP file once a piece has reached this many bytes (0: never).
+    max_bagfile_duration_ns : int
+        Split once a message is this long after the piece's first message (0: never).
 
     Examples
     --------
@@ -371,12 +415,26 @@ class SessionBagWriter:
         ros_distro: str = "jazzy",
         custom_data: Mapping[str, str] | None = None,
         library: str | None = None,
+        max_bagfile_size: int = 0,
+        max_bagfile_duration_ns: int = 0,
     ) -> None:
         if chunk_size <= 0:
             raise SessionBagError(f"chunk_size must be positive, got {chunk_size}")
+        if max_bagfile_size < 0 or max_bagfile_duration_ns < 0:
+            raise SessionBagError(
+                f"max_bagfile_size ({max_bagfile_size}) and max_bagfile_duration_ns "
+                f"({max_bagfile_duration_ns}) must be 0 (no splitting) or positive")
         self._path = Path(path)
         name = self._path.resolve().name if self._path.name in ("", ".", "..") else self._path.name
+        self._base_name = name
         self._file_name = f"{name}_0.mcap"
+        self._max_size = int(max_bagfile_size)
+        self._max_duration_ns = int(max_bagfile_duration_ns)
+        self._pieces: list[BagPiece] = []
+        self._piece_first_ns: int | None = None
+        self._piece_last_ns: int | None = None
+        self._piece_messages = 0
+        self._metadata_records: list[tuple[str, dict[str, str]]] = []
         self._chunk_size = int(chunk_size)
         self._compression = Compression(compression)
         self._ros_distro = ros_distro
@@ -400,8 +458,21 @@ class SessionBagWriter:
 
     @property
     def mcap_path(self) -> Path:
-        """The MCAP file, ``<dir>/<dir name>_0.mcap`` as rosbag2 names it."""
+        """The MCAP file being written, ``<dir>/<dir name>_<n>.mcap`` as rosbag2 names it."""
         return self._path / self._file_name
+
+    @property
+    def pieces(self) -> tuple[BagPiece, ...]:
+        """The finished MCAP files of the bag so far (the open one is not among them)."""
+        with self._lock:
+            return tuple(self._pieces)
+
+    @property
+    def bytes_written(self) -> int:
+        """Bytes of every piece so far, the open one included."""
+        with self._lock:
+            open_bytes = self._file.tell() if self._file is not None else 0
+            return sum(p.size_bytes for p in self._pieces) + open_bytes
 
     @property
     def is_open(self) -> bool:
@@ -444,24 +515,93 @@ class SessionBagWriter:
                 raise SessionBagError(
                     f"cannot create bag directory {self._path}: {err.strerror or err}; "
                     "choose a writable bags directory") from None
-            try:
-                self._file = _UnbufferedFile(self.mcap_path)
-            except OSError as err:
-                raise SessionBagError(
-                    f"cannot create {self.mcap_path}: {err.strerror or err}; "
-                    "check the bags directory's permissions and free space") from None
-            self._writer = Writer(
-                self._file,  # type: ignore[arg-type]  # duck-typed stream
-                chunk_size=self._chunk_size,
-                compression=_MCAP_COMPRESSION[self._compression],
-                index_types=IndexType.ALL,
-                repeat_channels=True,
-                repeat_schemas=True,
-                use_chunking=True,
-                use_statistics=True,
-                use_summary_offsets=True,
-            )
-            self._guarded(lambda w: w.start(profile=PROFILE, library=self._library))
+            self._open_piece()
+
+    def _open_piece(self) -> None:
+        """Create the MCAP file ``self._file_name``, write its header and every schema,
+        channel and metadata record added so far (lock held)."""
+        try:
+            self._file = _UnbufferedFile(self.mcap_path)
+        except OSError as err:
+            raise SessionBagError(
+                f"cannot create {self.mcap_path}: {err.strerror or err}; "
+                "check the bags directory's permissions and free space") from None
+        self._writer = Writer(
+            self._file,  # type: ignore[arg-type]  # duck-typed stream
+            chunk_size=self._chunk_size,
+            compression=_MCAP_COMPRESSION[self._compression],
+            index_types=IndexType.ALL,
+            repeat_channels=True,
+            repeat_schemas=True,
+            use_chunking=True,
+            use_statistics=True,
+            use_summary_offsets=True,
+        )
+        self._guarded(lambda w: w.start(profile=PROFILE, library=self._library))
+        self._schemas = {}
+        self._piece_first_ns = self._piece_last_ns = None
+        self._piece_messages = 0
+        for topic in self._topics.values():
+            topic.channel_id = self._register(topic.type_name, topic.definition,
+                                              topic.name, topic.serialization_format,
+                                              topic.channel_metadata)
+        for name, record in self._metadata_records:
+            self._guarded(lambda w, n=name, r=record: w.add_metadata(n, r))
+
+    def _register(self, type_name: str, definition: MessageDefinition, topic: str,
+                  serialization_format: str, metadata: dict[str, str]) -> int:
+        """Schema (once per type and file) and Channel of a topic; returns the channel id."""
+        schema_id = self._schemas.get(type_name)
+        if schema_id is None:
+            schema_id = self._guarded(lambda w: w.register_schema(
+                name=type_name, encoding=definition.encoding,
+                data=definition.text.encode("utf-8")))
+            self._schemas[type_name] = schema_id
+        return self._guarded(lambda w: w.register_channel(
+            topic=topic, message_encoding=serialization_format, schema_id=schema_id,
+            metadata=metadata))
+
+    def _open_piece_entry(self, size_bytes: int = 0) -> BagPiece:
+        first = self._piece_first_ns
+        return BagPiece(
+            path=self.mcap_path, starting_time_ns=INT64_MAX if first is None else first,
+            duration_ns=0 if first is None else int(self._piece_last_ns) - first,
+            message_count=self._piece_messages, size_bytes=size_bytes)
+
+    def _close_piece(self, writer: Writer) -> None:
+        """Write the ``rosbag2`` record (the bag so far) and the summary of the open piece,
+        close its file, and list it among the pieces (lock held)."""
+        try:
+            metadata = self._bag_metadata(self._make_summary(),
+                                          [*self._pieces, self._open_piece_entry()])
+            serialized = "\n".join(_yaml_lines(metadata, 0))
+            writer.add_metadata(ROSBAG2_METADATA_RECORD, {"serialized_metadata": serialized})
+            writer.finish()
+        except OSError as err:
+            raise SessionBagError(
+                f"cannot finish {self.mcap_path}: {err.strerror or err}; the data written "
+                "so far can be saved with 'bag_recover'") from None
+        finally:
+            if self._file is not None:
+                self._file.close()
+            self._pieces.append(self._open_piece_entry(
+                self._file.tell() if self._file is not None else 0))
+            self._file = None
+
+    def _split(self) -> None:
+        """Finish the open piece and begin the next (lock held)."""
+        writer, self._writer = self._writer, None
+        self._close_piece(writer)
+        self._file_name = f"{self._base_name}_{len(self._pieces)}.mcap"
+        self._open_piece()
+
+    def _should_split(self, log_time_ns: int) -> bool:
+        if self._piece_messages == 0 or self._file is None or self._writer is None:
+            return False
+        if self._max_size and self._file.tell() >= self._max_size:
+            return True
+        return bool(self._max_duration_ns
+                    and log_time_ns - int(self._piece_first_ns) >= self._max_duration_ns)
 
     def finish(self) -> BagSummary:
         """Close the open chunk, write summary, ``rosbag2`` metadata record and metadata.yaml.
@@ -477,23 +617,17 @@ class SessionBagWriter:
         with self._lock:
             if self._summary is not None:
                 return self._summary
-            summary = self._make_summary()
-            self._summary = summary
             writer, self._writer = self._writer, None
-            if writer is None:
-                return summary
+            if writer is None and not self._pieces:  # never started
+                self._summary = self._make_summary()
+                return self._summary
             try:
-                metadata = self._bag_metadata(summary)
-                serialized = "\n".join(_yaml_lines(metadata, 0))
-                writer.add_metadata(ROSBAG2_METADATA_RECORD, {"serialized_metadata": serialized})
-                writer.finish()
-            except OSError as err:
-                raise SessionBagError(
-                    f"cannot finish {self.mcap_path}: {err.strerror or err}; the data written "
-                    "so far can be saved with 'bag_recover'") from None
+                if writer is not None:
+                    self._close_piece(writer)
             finally:
-                if self._file is not None:
-                    self._file.close()
+                self._summary = self._make_summary()
+            summary = self._summary
+            metadata = self._bag_metadata(summary, self._pieces)
             document = {"rosbag2_bagfile_information": metadata}
             text = "\n".join(_yaml_lines(document, 0))
             target = self._path / METADATA_FILENAME
@@ -568,22 +702,17 @@ class SessionBagWriter:
         except MessageDefinitionError as err:
             raise SessionBagError(f"cannot add topic {topic}: {err}") from None
         channel_qos = "\n".join(_yaml_lines(profiles, 0)) if profiles else "[]"
+        metadata = {"offered_qos_profiles": channel_qos, "topic_type_hash": type_hash}
         with self._lock:
             self._require_open()
             if topic in self._topics:
                 raise SessionBagError(f"topic {topic} was already added to {self._path}")
-            schema_id = self._schemas.get(type_name)
-            if schema_id is None:
-                schema_id = self._guarded(lambda w: w.register_schema(
-                    name=type_name, encoding=definition.encoding,
-                    data=definition.text.encode("utf-8")))
-                self._schemas[type_name] = schema_id
-            channel_id = self._guarded(lambda w: w.register_channel(
-                topic=topic, message_encoding=serialization_format, schema_id=schema_id,
-                metadata={"offered_qos_profiles": channel_qos, "topic_type_hash": type_hash}))
+            channel_id = self._register(type_name, definition, topic, serialization_format,
+                                        metadata)
             self._topics[topic] = _Topic(
                 name=topic, type_name=type_name, serialization_format=serialization_format,
-                offered_qos=profiles, type_hash=type_hash, channel_id=channel_id)
+                offered_qos=profiles, type_hash=type_hash, channel_id=channel_id,
+                definition=definition, channel_metadata=metadata)
 
     def write(
         self,
@@ -616,10 +745,17 @@ class SessionBagWriter:
                 raise SessionBagError(
                     f"topic {topic} is not in bag {self._path}; call add_topic() before write()")
             log_time_ns = int(log_time_ns)
+            if self._should_split(log_time_ns):
+                self._split()
             self._guarded(lambda w: w.add_message(
                 channel_id=entry.channel_id, log_time=log_time_ns, data=data,
                 publish_time=int(publish_time_ns), sequence=int(sequence)))
             entry.message_count += 1
+            self._piece_messages += 1
+            if self._piece_first_ns is None or log_time_ns < self._piece_first_ns:
+                self._piece_first_ns = log_time_ns
+            if self._piece_last_ns is None or log_time_ns > self._piece_last_ns:
+                self._piece_last_ns = log_time_ns
             if self._first_log_ns is None or log_time_ns < self._first_log_ns:
                 self._first_log_ns = log_time_ns
             if self._last_log_ns is None or log_time_ns > self._last_log_ns:
@@ -643,6 +779,12 @@ class SessionBagWriter:
         with self._lock:
             self._require_open()
             self._guarded(lambda w: w.add_metadata(name, record))
+            self._metadata_records.append((name, record))  # repeated in later pieces
+
+    def set_custom_data(self, key: str, value: str) -> None:
+        """Set one entry of metadata.yaml's ``custom_data`` (written by finish())."""
+        with self._lock:
+            self._custom_data[str(key)] = str(value)
 
     def flush(self) -> None:
         """Close the open chunk (if it holds messages) and hand it to the OS."""
@@ -673,14 +815,15 @@ class SessionBagWriter:
         first = self._first_log_ns
         return BagSummary(
             path=self._path,
-            mcap_path=self.mcap_path,
+            mcap_path=self._path / f"{self._base_name}_0.mcap",
+            pieces=tuple(self._pieces),
             message_counts=counts,
             message_count=sum(counts.values()),
             starting_time_ns=INT64_MAX if first is None else first,
             duration_ns=0 if first is None else int(self._last_log_ns) - first,
         )
 
-    def _bag_metadata(self, summary: BagSummary) -> dict[str, Any]:
+    def _bag_metadata(self, summary: BagSummary, pieces: list[BagPiece]) -> dict[str, Any]:
         """rosbag2's BagMetadata as YAML nodes (yaml.hpp convert<BagMetadata>::encode order)."""
         topics = [
             {
@@ -704,13 +847,13 @@ class SessionBagWriter:
             "topics_with_message_count": topics,
             "compression_format": "",
             "compression_mode": "",
-            "relative_file_paths": [self._file_name],
+            "relative_file_paths": [piece.path.name for piece in pieces],
             "files": [{
-                "path": self._file_name,
-                "starting_time": {"nanoseconds_since_epoch": summary.starting_time_ns},
-                "duration": {"nanoseconds": summary.duration_ns},
-                "message_count": summary.message_count,
-            }],
+                "path": piece.path.name,
+                "starting_time": {"nanoseconds_since_epoch": piece.starting_time_ns},
+                "duration": {"nanoseconds": piece.duration_ns},
+                "message_count": piece.message_count,
+            } for piece in pieces],
             "custom_data": dict(self._custom_data) or None,
             "ros_distro": self._ros_distro,
         }
