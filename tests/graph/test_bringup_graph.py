@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 from ament_index_python.packages import get_package_share_directory
-from rcl_interfaces.srv import ListParameters
+from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.srv import GetParameters, ListParameters
 from rclpy.node import Node
 
 from fingerps_recon import topics
@@ -105,10 +106,22 @@ def test_every_package_config_loads_and_lists_every_parameter(
         assert client.wait_for_service(timeout_sec=20.0)
         future = client.call_async(ListParameters.Request())
         spin_until(future.done, f"{name}'s parameters")
-        declared = set(future.result().result.names) - ROS_DEFAULTS
+        names = list(future.result().result.names)
+        declared = set(names) - ROS_DEFAULTS
         assert declared == documented[name], (
             f"{name}: undocumented {sorted(declared - documented[name])}, "
             f"documented but absent {sorted(documented[name] - declared)}")
+        # What `ros2 param dump` asks: every value at once. rclpy answers nothing at all if
+        # one of them is a typed parameter without a value (the dump then shows {}).
+        getter = ros_node.create_client(GetParameters, f"{NS}/{name}/get_parameters")
+        future = getter.call_async(GetParameters.Request(names=names))
+        spin_until(future.done, f"{name}'s parameter values")
+        values = future.result().values
+        assert len(values) == len(names), f"{name}: get_parameters answered {len(values)} of " \
+            f"{len(names)} values"
+        unset = [n for n, v in zip(names, values, strict=True)
+                 if v.type == ParameterType.PARAMETER_NOT_SET]
+        assert not unset, f"{name}: parameters without a value: {unset}"
     bringup.send_signal(signal.SIGINT)
     assert bringup.wait(timeout=40.0) == 0, bringup.output
 

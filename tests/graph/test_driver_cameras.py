@@ -113,6 +113,8 @@ def _run(*args: str) -> subprocess.CompletedProcess:
     (["-p", "led_order:=[0, 9]"], "led_order"),
     (["-p", "exposure_times:=[0.01, 0.02]"], "2 entries for 7 LEDs"),
     (["-p", "led_levels:=[1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 2.0]"], "levels are in 0..1"),
+    (["-p", "led_levels:=[a, b, c, d, e, f, g]"], "must be a list of numbers"),  # dynamic type
+    (["-p", "exposure_times:=0.01"], "must be a list of numbers"),
     (["-p", "camera:=gopro"], "camera"),
     (["-p", "camera:=v4l2", "-p", "camera_device:=/dev/fingerps_no_camera"],
      "cannot open camera '/dev/fingerps_no_camera'"),

@@ -21,6 +21,7 @@ at start the same wait instead of exit code 2.
 
 from __future__ import annotations
 
+import array
 import collections
 import os
 import statistics
@@ -32,6 +33,7 @@ from enum import Enum
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
@@ -116,9 +118,28 @@ def _sphere_center_problem(value: list[float]) -> str | None:
 
 
 def _array_value(node: Node, name: str) -> list:
-    """An array parameter's value as a list; [] when it is not set."""
-    value = node.get_parameter_or(name, Parameter(name, value=None)).value
-    return list(value) if value is not None else []
+    """An array parameter's value as a list of floats; [] when it is not set or empty."""
+    return _numbers(node.get_parameter_or(name, Parameter(name, value=None)).value) or []
+
+
+def _numbers(value: object) -> list[float] | None:
+    """A dynamically typed per-LED array as floats (None when not set); see _numbers_problem."""
+    return None if value is None else [float(v) for v in value]  # type: ignore[attr-defined]
+
+
+def _numbers_problem(value: object) -> str | None:
+    """Why a dynamically typed array parameter is not a list of numbers, or None."""
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple, array.array)) or any(
+            isinstance(v, (bool, str, bytes)) for v in value):
+        return "must be a list of numbers, one per LED, or empty"
+    return None
+
+
+def _dynamic(desc: ParameterDescriptor) -> ParameterDescriptor:
+    desc.dynamic_typing = True
+    return desc
 
 
 class DriverNode(Node):
@@ -203,10 +224,9 @@ class DriverNode(Node):
             "must be two finite numbers [du, dv] in pixels, each within +-100")
         checks.add("led_order", lambda v: check_led_order(list(v), self._led_count))
         checks.add("exposure_times",
-                   lambda v: check_exposures(list(v) if v is not None else None,
-                                             self._led_count))
+                   lambda v: _numbers_problem(v) or check_exposures(_numbers(v), self._led_count))
         checks.add("led_levels",
-                   lambda v: check_levels(list(v) if v is not None else None, self._led_count))
+                   lambda v: _numbers_problem(v) or check_levels(_numbers(v), self._led_count))
         checks.add("reconnect_max_s", lambda v: None if v >= self._param("reconnect_initial_s")
                    else "must be >= reconnect_initial_s")
         p = self.declare_parameter
@@ -240,14 +260,17 @@ class DriverNode(Node):
         # exposure and levels
         p("exposure_time", 0.01, descriptor("Exposure time per frame, seconds",
                                             min_value=MIN_EXPOSURE_S, max_value=MAX_EXPOSURE_S))
-        p("exposure_times", Parameter.Type.DOUBLE_ARRAY, descriptor(
-            "Exposure time of each LED, seconds, indexed by LED (one per LED); not set or "
-            "empty: exposure_time for all"))
+        # Per-LED arrays default to [] with dynamic typing (the checks require numbers): a
+        # statically typed parameter with no value makes rclpy's get_parameters service
+        # answer nothing at all, so `ros2 param dump` printed {} (and rclpy types [] as bytes).
+        p("exposure_times", [], _dynamic(descriptor(
+            "Exposure time of each LED, seconds, indexed by LED (one per LED); "
+            "empty: exposure_time for all")))
         p("led_level", 1.0, descriptor("Relative LED drive level, 0..1", min_value=0.0,
                                        max_value=1.0))
-        p("led_levels", Parameter.Type.DOUBLE_ARRAY, descriptor(
-            "Relative drive level 0..1 of each LED, indexed by LED (one per LED); not set or "
-            "empty: led_level for all"))
+        p("led_levels", [], _dynamic(descriptor(
+            "Relative drive level 0..1 of each LED, indexed by LED (one per LED); "
+            "empty: led_level for all")))
         # capture modes
         p("rate", 0.0, descriptor(
             "Continuous capture rate in bursts per second; 0 = only on request",
