@@ -2,6 +2,7 @@
 #   make demo   - the whole graph on the simulated rig, with a summary
 #   make test   - the whole test suite
 #   make bench  - every benchmark; figures into bench/results.json
+#   make soak   - 30 min of the bringup graph at 5 bursts/s (not in bench); soak.* into bench/results.json
 SHELL := /bin/bash
 .SHELLFLAGS := -e -o pipefail -c
 PYTHON ?= python3
@@ -11,7 +12,7 @@ SRC_FILES := $(shell find src -type f \( -name '*.py' -o -name '*.xml' -o -name 
                -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.cfg' \
                -o -name '*.yaml' \) -not -path '*/__pycache__/*')
 
-.PHONY: setup build demo test bench lint clean
+.PHONY: setup build demo test bench soak lint clean
 .DEFAULT_GOAL := demo
 
 setup: $(STAMPS)/venv
@@ -44,6 +45,9 @@ test: build
 
 bench: build
 	$(ROS) python bench/run_all.py --out bench/results.json
+
+soak: build
+	$(ROS) python bench/bench_soak.py --minutes 30 --out bench/results.json
 
 lint: $(STAMPS)/venv
 	.venv/bin/ruff check src tests bench tools

@@ -211,7 +211,7 @@ def _burst_stamp(serialized: bytes) -> int:
 class Observer:
     """The benchmark's node: calls the services, sets parameters, receives bursts and clouds."""
 
-    def __init__(self, domain_id: int) -> None:
+    def __init__(self, domain_id: int, name: str = "bench_e2e") -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rcl_interfaces.srv import SetParameters
@@ -240,7 +240,7 @@ class Observer:
                     os.environ.pop(k, None)
                 else:
                     os.environ[k] = v
-        node = self.node = rclpy.create_node("bench_e2e", namespace=topics.NAMESPACE,
+        node = self.node = rclpy.create_node(name, namespace=topics.NAMESPACE,
                                              context=self.context)
         self.cal_flat = node.create_client(CalibrateFlatField, topics.CALIBRATE_FLAT_FIELD)
         self.cal_lights = node.create_client(CalibrateLights, topics.CALIBRATE_LIGHTS)
@@ -378,13 +378,17 @@ class Window:
                    if self.recon_stages else ""))
 
 
-def measure(observer: Observer, graph: Graph, rate: float, seconds: float) -> Window:
-    """Count bursts and clouds over ``seconds``, then wait for the window's last clouds."""
+def measure(observer: Observer, graph: Graph, rate: float, seconds: float,
+            tick: Callable[[], None] | None = None) -> Window:
+    """Count bursts and clouds over ``seconds``, then wait for the window's last clouds;
+    ``tick`` (if given) is called every 0.2 s of the window (the soak samples with it)."""
     counts_before = observer.recon_counts()
     t0 = time.time_ns()
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         graph.check_running()
+        if tick is not None:
+            tick()
         time.sleep(min(0.2, max(end - time.monotonic(), 0.0)))
     t1 = time.time_ns()
     seen = observer.seen
