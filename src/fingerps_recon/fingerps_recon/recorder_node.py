@@ -250,6 +250,11 @@ class RecorderNode(Node):
             "Megabytes of messages waiting for the writer; beyond this the oldest are "
             "dropped (and counted)", min_value=1, max_value=65536, integer=True,
             read_only=True))
+        p("history_depth", 50, descriptor(
+            "Keep-last depth of the recorder's subscriptions: messages per topic DDS holds "
+            "for the recorder while its executor is busy (a deeper reader history is "
+            "compatible with every publisher; the publishers' own depth is kept in the bag's "
+            "QoS metadata)", min_value=1, max_value=10000, integer=True, read_only=True))
         p("max_bagfile_size", 0, descriptor(
             "Bytes after which the bag goes on in a new MCAP file <session_name>_<n>.mcap "
             "(rosbag2's max_bagfile_size); 0 = one file", min_value=0,
@@ -304,10 +309,11 @@ class RecorderNode(Node):
             self._bag.add_metadata("fingerps.software", self._software_record())
             self._bag.add_metadata("fingerps.recorder.parameters", self._parameters_record())
             self._worker.start()
+            depth = int(self.get_parameter("history_depth").value)
             for topic, spec in self._record.items():
                 self._subscriptions_made.append(self.create_subscription(
                     classes[topic], topic, functools.partial(self._on_message, topic),
-                    spec.qos, raw=True))
+                    _deeper(spec.qos, depth), raw=True))
         except BaseException:
             self.finish_bag()
             raise
@@ -573,6 +579,15 @@ class RecorderNode(Node):
         """Finish the bag (so SIGINT and SIGTERM leave a valid bag), then destroy the node."""
         self.finish_bag()
         super().destroy_node()
+
+
+def _deeper(profile: QoSProfile, depth: int) -> QoSProfile:
+    """The topic's profile with a keep-last depth of at least ``depth``."""
+    return QoSProfile(history=profile.history, depth=max(profile.depth, depth),
+                      reliability=profile.reliability, durability=profile.durability,
+                      deadline=profile.deadline, lifespan=profile.lifespan,
+                      liveliness=profile.liveliness,
+                      liveliness_lease_duration=profile.liveliness_lease_duration)
 
 
 def _dist_version(name: str) -> str:
