@@ -4,11 +4,14 @@ Analytic case: the 8 mm cylinder of test_surface_unrolling carrying 50 um ridges
 axis, crests every 0.5 mm of arc length. Simulated case: the rig's finger (true depth),
 and a reconstruction of a simulated burst (as tests/core/test_pipeline.py runs it).
 
-Measured (this machine): crest spacing on the cylinder XX px per 10 mm (exact: 196.85);
-the rig finger's print period 0.485 mm (truth 0.5 mm; the estimator reads 0.4975 on the
+Measured (this machine): crest spacing on the cylinder 196.87 px per 10 mm (exact: 196.85);
+the rig finger's print period 0.485 mm (skin 0.5 mm; the estimator reads 0.4975 on the
 generator's own pattern, so ~-2.6 % is the springs model's radial compression of the
-doubly curved cap, see test_surface_unrolling's sphere cap); agreement of the print with the
-true ridges (correlation at the source pixels): relief XX, Laplacian XX.
+doubly curved cap, see test_surface_unrolling's sphere cap); agreement of a reconstruction's
+print with the true ridges (correlation at the source pixels): Laplacian 0.973, relief
+0.861 (0.98 both beyond 1 mm from the outline: the relief's band pass fails near it);
+ridge-orientation coherence 0.97 on ridges, 0.29 on band-limited noise (limit 0.45);
+egg-crate bumps (1 mm over 3 mm) unroll with 13 % rms strain (limit 5 %).
 """
 
 from __future__ import annotations
@@ -39,10 +42,9 @@ PX_PER_10_MM = 196.85
 SCALE_TOLERANCE_PX = 2.0
 #: The rig finger's print period may differ from the skin's by this fraction.
 PERIOD_TOLERANCE = 0.05
-#: Least correlation of a reconstruction's print with the true ridges (measured 0.897; the
-#: print of the true surface itself reaches 0.905 against this band-passed reference, 0.98
-#: beyond 1 mm from the outline).
-AGREEMENT = 0.85
+#: Least correlation of a reconstruction's print with the true ridges (measured 0.973, as
+#: the print of the true surface; the relief's print 0.861).
+AGREEMENT = 0.95
 
 
 def ridged_cylinder(*, noise: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -205,16 +207,10 @@ def test_reconstruction_print_follows_the_true_ridges() -> None:
     recon = reconstruct(images, lights_ps=rig.light_directions_ps(),
                         camera_matrix=rig.camera_matrix, full_scale=255.0,
                         intensities=rig.light_intensities())
-    # The true ridges on the image: the true relief band-passed (difference of Gaussians
-    # within the mask), positive on the crests.
-    relief = np.where(truth.mask, -truth.depth_m, 0.0)
-    weight = truth.mask.astype(np.float64)
-
-    def smooth(x: np.ndarray, sigma: float) -> np.ndarray:
-        return (scipy.ndimage.gaussian_filter(x * weight, sigma)
-                / np.maximum(scipy.ndimage.gaussian_filter(weight, sigma), 1e-9))
-
-    ridges = smooth(relief, 1.5) - smooth(relief, 6.0)
+    # The true ridges on the image: how far each pixel's surface point is raised above the
+    # same finger without ridges (positive on the crests).
+    plain = SimulatedRig(RigConfig(ridge_height_m=0.0)).finger_truth()
+    ridges = np.where(truth.mask & plain.mask, plain.depth_m - truth.depth_m, 0.0)
     agreement = {}
     for signal in RidgeSignal:
         result = rolled_print(recon.depth_m, mask=recon.mask, camera_matrix=rig.camera_matrix,
@@ -226,4 +222,4 @@ def test_reconstruction_print_follows_the_true_ridges() -> None:
               f"{result.coherence:.3f}, area {result.area_mm2:.0f} mm^2, strain rms "
               f"{100 * result.strain_rms:.2f} %, {result.timings_ms['total']:.0f} ms")
     assert agreement[RidgeSignal.LAPLACIAN] > AGREEMENT
-    assert agreement[RidgeSignal.LAPLACIAN] > agreement[RidgeSignal.HEIGHT] + 0.03
+    assert agreement[RidgeSignal.LAPLACIAN] > agreement[RidgeSignal.HEIGHT] + 0.05
