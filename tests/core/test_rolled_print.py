@@ -11,7 +11,8 @@ doubly curved cap, see test_surface_unrolling's sphere cap); agreement of a reco
 print with the true ridges (correlation at the source pixels): Laplacian 0.973, relief
 0.861 (0.98 both beyond 1 mm from the outline: the relief's band pass fails near it);
 ridge-orientation coherence 0.97 on ridges, 0.29 on band-limited noise (limit 0.45);
-egg-crate bumps (1 mm over 3 mm) unroll with 13 % rms strain (limit 5 %).
+egg-crate bumps (1 mm over 3 mm) unroll with 13 % rms strain (limit 5 %); with noise of
+0.3 per component added to the normals, Gabor filtering raises the agreement 0.870 -> 0.957.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from test_surface_unrolling import APEX_MM, K, cylinder
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_driver.simulation.rig import RigConfig
 from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.pipeline import reconstruct
+from fingerps_recon.pipeline import Reconstruction, reconstruct
 from fingerps_recon.pixel_rays import pixel_rays_optical
 from fingerps_recon.rolled_print import (
     PrintRejection,
@@ -45,6 +46,8 @@ PERIOD_TOLERANCE = 0.05
 #: Least correlation of a reconstruction's print with the true ridges (measured 0.973, as
 #: the print of the true surface; the relief's print 0.861).
 AGREEMENT = 0.95
+#: Noise added to each component of the reconstructed normals for the Gabor test.
+NORMAL_NOISE = 0.3
 
 
 def ridged_cylinder(*, noise: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -197,9 +200,11 @@ def test_rig_finger_period() -> None:
     assert result.coherence > 0.9
 
 
-def test_reconstruction_print_follows_the_true_ridges() -> None:
-    """The print of a reconstructed burst agrees with the true ridges, and the default
-    ridge signal (the normals' Laplacian) agrees better than the relief."""
+@pytest.fixture(scope="module")
+def rig_case() -> tuple[SimulatedRig, Reconstruction, np.ndarray]:
+    """The rig, a reconstruction of its burst (as tests/core/test_pipeline.py makes it) and
+    the true ridges on the image: how far each pixel's surface point is raised above the
+    same finger without ridges (positive on the crests)."""
     rig = SimulatedRig()
     truth = rig.finger_truth()
     images = np.stack([rig.render(Scene.FINGER, [i], rng=np.random.default_rng(10 + i))
@@ -207,19 +212,45 @@ def test_reconstruction_print_follows_the_true_ridges() -> None:
     recon = reconstruct(images, lights_ps=rig.light_directions_ps(),
                         camera_matrix=rig.camera_matrix, full_scale=255.0,
                         intensities=rig.light_intensities())
-    # The true ridges on the image: how far each pixel's surface point is raised above the
-    # same finger without ridges (positive on the crests).
     plain = SimulatedRig(RigConfig(ridge_height_m=0.0)).finger_truth()
     ridges = np.where(truth.mask & plain.mask, plain.depth_m - truth.depth_m, 0.0)
+    return rig, recon, ridges
+
+
+def _agreement(result: RolledPrint, ridges: np.ndarray) -> float:
+    """Correlation of the print's darkness with the true ridges at its source pixels."""
+    darkness = 255.0 - result.image[result.mask]
+    return float(np.corrcoef(darkness, _at_source(ridges, result))[0, 1])
+
+
+def test_reconstruction_print_follows_the_true_ridges(rig_case) -> None:
+    """The print of a reconstructed burst agrees with the true ridges, and the default
+    ridge signal (the normals' Laplacian) agrees better than the relief."""
+    rig, recon, ridges = rig_case
     agreement = {}
     for signal in RidgeSignal:
         result = rolled_print(recon.depth_m, mask=recon.mask, camera_matrix=rig.camera_matrix,
                               height_m=recon.height_m, normals_ps=recon.normals_ps,
                               options=RolledPrintOptions(signal=signal))
-        darkness = 255.0 - result.image[result.mask]
-        agreement[signal] = float(np.corrcoef(darkness, _at_source(ridges, result))[0, 1])
+        agreement[signal] = _agreement(result, ridges)
         print(f"\n{signal.value}: agreement {agreement[signal]:.3f}, coherence "
               f"{result.coherence:.3f}, area {result.area_mm2:.0f} mm^2, strain rms "
               f"{100 * result.strain_rms:.2f} %, {result.timings_ms['total']:.0f} ms")
     assert agreement[RidgeSignal.LAPLACIAN] > AGREEMENT
     assert agreement[RidgeSignal.LAPLACIAN] > agreement[RidgeSignal.HEIGHT] + 0.05
+
+
+def test_gabor_filtering_helps_noisy_normals(rig_case) -> None:
+    rig, recon, ridges = rig_case
+    noisy = recon.normals_ps + NORMAL_NOISE * np.random.default_rng(5).standard_normal(
+        recon.normals_ps.shape).astype(np.float32)
+    noisy /= np.linalg.norm(noisy, axis=-1, keepdims=True)
+    noisy[~recon.mask] = 0.0
+    agreement = {}
+    for gabor in (False, True):
+        result = rolled_print(recon.depth_m, mask=recon.mask, camera_matrix=rig.camera_matrix,
+                              normals_ps=noisy, options=RolledPrintOptions(gabor=gabor))
+        agreement[gabor] = _agreement(result, ridges)
+        print(f"\ngabor {gabor}: agreement {agreement[gabor]:.3f}, coherence "
+              f"{result.coherence:.3f}, enhance {result.timings_ms['enhance']:.0f} ms")
+    assert agreement[True] > agreement[False] + 0.05

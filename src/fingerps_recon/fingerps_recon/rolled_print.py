@@ -23,7 +23,8 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    convolutions within the print's mask, so the outside does not enter.
 4. Local contrast normalisation: zero mean and unit standard deviation in ~1 mm windows
    (Gaussian sigma 0.4 mm), then ridges dark on white: grey = 127.5 (1 - n / 2) clipped to
-   0..255 (a sinusoidal ridge spans ~37..218), 255 outside the finger.
+   0..255 (a sinusoidal ridge spans ~37..218), 255 outside the finger. Optionally
+   contextual Gabor filtering before the grey levels (``RolledPrintOptions.gabor``).
 
 Quality facts: the print's area (mm^2), the unrolling's strain (rms and max relative
 difference of 2D and 3D spring lengths) and the mean ridge-orientation coherence of the
@@ -100,6 +101,13 @@ class RolledPrintOptions:
     max_strain: float = 0.5
     min_coherence: float = 0.45
     max_size_mm: float = 60.0
+    gabor: bool = False
+    """Contextual (Gabor) filtering after the normalisation. On the simulated rig it helps
+    only noisy normals (agreement with the true ridges 0.87 -> 0.96 with normals noise of
+    0.3 per component) and costs ~20 ms; on clean ones it lowers the agreement a little
+    (0.973 -> 0.96), so it is off by default."""
+    gabor_period_mm: float = 0.5
+    """Ridge period the Gabor filters are tuned to (their band is ~+-30 %)."""
 
 
 @dataclass(frozen=True)
@@ -324,8 +332,6 @@ def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
     var = smooth(centred * centred, sn, den_n)
     floor = float(np.median(var[inside])) * 0.01 if inside.any() else 1.0
     norm = centred / np.sqrt(var + max(floor, 1e-30))
-    grey = np.clip(127.5 * (1.0 - 0.5 * norm), 0.0, 255.0)
-    image = np.where(inside, np.rint(grey), 255.0).astype(np.uint8)
 
     # Gradient structure tensor (Bazen & Gerez 2002) over the same windows.
     gx = cv2.Sobel(norm, cv2.CV_32F, 1, 0, ksize=3)
@@ -335,4 +341,37 @@ def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
     gyy = smooth(gy * gy * core, sn, den_n)
     gxy = smooth(gx * gy * core, sn, den_n)
     coherence = np.sqrt((gxx - gyy) ** 2 + 4 * gxy * gxy) / np.maximum(gxx + gyy, 1e-12)
+
+    if options.gabor:
+        # Across the ridges: the direction of the structure tensor's main eigenvector.
+        across = 0.5 * np.arctan2(2 * gxy, gxx - gyy)
+        norm = _gabor(np.where(inside, norm, 0.0).astype(np.float32), inside, across,
+                      options.gabor_period_mm * ppmm)
+    grey = np.clip(127.5 * (1.0 - 0.5 * norm), 0.0, 255.0)
+    image = np.where(inside, np.rint(grey), 255.0).astype(np.uint8)
     return image, float(coherence[core].mean()) if core.any() else 0.0
+
+
+def _gabor(x: np.ndarray, inside: np.ndarray, across: np.ndarray, period_px: float,
+           count: int = 8) -> np.ndarray:
+    """Contextual filtering as in Hong, Wan & Jain, "Fingerprint image enhancement:
+    algorithm and performance evaluation", IEEE TPAMI 20(8), 1998: each pixel takes the
+    response of the even-symmetric Gabor filter across its local ridge direction
+    (``across``, radians, image axes) at the ridge period, interpolated between the two
+    nearest of ``count`` orientations; then unit rms over ``inside``."""
+    sigma = 0.5 * period_px
+    size = 2 * math.ceil(3 * sigma) + 1
+    responses = np.empty((count, *x.shape), dtype=np.float32)
+    for i in range(count):  # one filter per orientation, not per pixel
+        kernel = cv2.getGaborKernel((size, size), sigma, np.pi * i / count, period_px, 1.0, 0.0,
+                                    ktype=cv2.CV_32F)
+        kernel -= kernel.mean()  # no response to a constant
+        responses[i] = cv2.filter2D(x, cv2.CV_32F, kernel, borderType=cv2.BORDER_CONSTANT)
+    position = np.mod(across, np.pi) * (count / np.pi)
+    lower = np.floor(position).astype(np.intp)
+    frac = (position - lower).astype(np.float32)
+    r0 = np.take_along_axis(responses, (lower % count)[None], 0)[0]
+    r1 = np.take_along_axis(responses, ((lower + 1) % count)[None], 0)[0]
+    out = (1.0 - frac) * r0 + frac * r1
+    rms = float(np.sqrt(np.mean(out[inside] ** 2))) if inside.any() else 1.0
+    return out / max(rms, 1e-12)
