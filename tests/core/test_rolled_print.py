@@ -24,6 +24,7 @@ from test_surface_unrolling import APEX_MM, K, cylinder
 
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_driver.simulation.rig import RigConfig
+from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.frames import optical_to_ps
 from fingerps_recon.pipeline import Reconstruction, reconstruct
 from fingerps_recon.pixel_rays import pixel_rays_optical
@@ -169,6 +170,14 @@ def test_too_little_finger() -> None:
     with pytest.raises(RolledPrintError) as info:
         _print(depth, np.zeros_like(mask))
     assert info.value.reason is PrintRejection.TOO_SMALL
+
+
+def test_inputs_that_do_not_fit() -> None:
+    depth, mask, _ = ridged_cylinder()
+    with pytest.raises(FingerpsReconError, match="same"):
+        _print(depth, mask[:-1])
+    with pytest.raises(FingerpsReconError, match="normals_ps"):
+        rolled_print(depth, mask=mask, camera_matrix=K)  # the Laplacian needs the normals
 
 
 def test_noise_is_not_a_print() -> None:

@@ -195,6 +195,9 @@ def rolled_print(
     timings: dict[str, float] = {}
     k = checked_camera_matrix(camera_matrix)
     depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.ndim != 2 or np.shape(mask) != depth.shape:
+        raise FingerpsReconError(f"depth_m {depth.shape} and mask {np.shape(mask)} must be "
+                                 "the same (H, W) shape")
     valid = np.asarray(mask, dtype=bool) & np.isfinite(depth)
     signal = _ridge_signal(depth, valid, k, height_m, normals_ps, options.signal)
     timings["signal"] = (time.perf_counter() - t0) * 1e3
