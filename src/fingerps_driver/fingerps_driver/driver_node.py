@@ -117,6 +117,30 @@ def _sphere_center_problem(value: list[float]) -> str | None:
     return None
 
 
+_FINGER_POSE = ("sim.finger_identity", "sim.finger_roll_deg", "sim.finger_yaw_deg",
+                "sim.finger_shift_mm")
+
+
+def _finger_shift_problem(value: list[float]) -> str | None:
+    if len(value) != 2 or not all(np.isfinite(value)) or max(abs(v) for v in value) > 5.0:
+        return ("must be two finite numbers [dx, dy] in mm (the apex's shift in the image "
+                "plane), each within +-5")
+    return None
+
+
+def _finger_config(node: Node) -> dict:
+    """RigConfig fields of the simulated finger's identity and pose from sim.finger_*."""
+    identity = int(node.get_parameter("sim.finger_identity").value)
+    shift = [1e-3 * float(v) for v in node.get_parameter("sim.finger_shift_mm").value]
+    x, y, z = RigConfig().finger_apex_optical_m
+    return {
+        "finger_identity": None if identity < 0 else identity,
+        "finger_roll_deg": float(node.get_parameter("sim.finger_roll_deg").value),
+        "finger_yaw_deg": float(node.get_parameter("sim.finger_yaw_deg").value),
+        "finger_apex_optical_m": (x + shift[0], y + shift[1], z),
+    }
+
+
 def _array_value(node: Node, name: str) -> list:
     """An array parameter's value as a list of floats; [] when it is not set or empty."""
     return _numbers(node.get_parameter_or(name, Parameter(name, value=None)).value) or []
@@ -222,6 +246,13 @@ class DriverNode(Node):
         checks.add("sim.finger_motion_px", lambda v: None if len(v) == 2 and all(
             np.isfinite(v)) and max(abs(x) for x in v) <= 100 else
             "must be two finite numbers [du, dv] in pixels, each within +-100")
+        checks.add("sim.finger_identity", lambda v: None if -1 <= v <= 2**31 - 1 else
+                   "must be -1 (the analytic spiral) or a fingerprint identity 0..2^31-1")
+        checks.add("sim.finger_roll_deg", lambda v: None if abs(v) <= 45.0 else
+                   "must be within +-45 degrees (beyond, the skin seen leaves the rolled print)")
+        checks.add("sim.finger_yaw_deg", lambda v: None if abs(v) <= 90.0 else
+                   "must be within +-90 degrees")
+        checks.add("sim.finger_shift_mm", _finger_shift_problem)
         checks.add("led_order", lambda v: check_led_order(list(v), self._led_count))
         checks.add("exposure_times",
                    lambda v: _numbers_problem(v) or check_exposures(_numbers(v), self._led_count))
@@ -338,6 +369,21 @@ class DriverNode(Node):
         p("sim.finger_motion_bursts", 0, descriptor(
             "Bursts the finger moves in once sim.finger_motion_px is set (counted from then); "
             "0 = every burst", min_value=0, max_value=1_000_000, integer=True))
+        p("sim.finger_identity", -1, descriptor(
+            "The simulated finger's fingerprint: -1 the analytic spiral, n >= 0 the synthetic "
+            "fingerprint of identity n (SFinGe-style, ~1 s to generate); changing it or the "
+            "pose rebuilds the finger (a few seconds) before the next burst",
+            min_value=-1, max_value=2**31 - 1, integer=True))
+        p("sim.finger_roll_deg", 0.0, descriptor(
+            "Rotation of the simulated finger about its own axis, degrees (+ brings the skin "
+            "at the apex towards +x)", min_value=-45.0, max_value=45.0))
+        p("sim.finger_yaw_deg", 0.0, descriptor(
+            "Rotation of the simulated finger about the optical axis through its apex, "
+            "degrees, from +x towards +y (clockwise as displayed)",
+            min_value=-90.0, max_value=90.0))
+        p("sim.finger_shift_mm", [0.0, 0.0], descriptor(
+            "Shift [dx, dy] of the simulated finger's apex in the image plane, mm (optical "
+            "x right, y down), each within +-5"))
         p("sim.board_control", "", descriptor(
             "Control socket of a board_emulator process (its --control): with a port other "
             "than 'sim', the sim and folder cameras see the LEDs that emulator has lit",
@@ -362,6 +408,13 @@ class DriverNode(Node):
                 with self._lock:  # not in the middle of a burst
                     self._rig = SimulatedRig(replace(
                         self._rig.config, sphere_center_optical_m=tuple(param.value)))
+        if self._rig is not None and any(p.name in _FINGER_POSE for p in parameters):
+            rig = SimulatedRig(replace(self._rig.config, **_finger_config(self)))
+            if Scene(self._param("sim.scene")) is Scene.FINGER:
+                rig.warm_up((Scene.FINGER,))  # outside the lock: bursts go on meanwhile
+            with self._lock:
+                self._rig = rig
+            self.get_logger().info(f"sim finger: {_finger_config(self)}")
 
     def _apply_rate(self, rate: float) -> None:
         self._capture_rate.set_rate(rate, time.monotonic())
@@ -476,7 +529,8 @@ class DriverNode(Node):
         try:
             config = RigConfig(reflectance=Reflectance(self._param("sim.reflectance")),
                                bit_depth=bit_depth, **size,
-                               sphere_center_optical_m=tuple(self._param("sim.sphere_center")))
+                               sphere_center_optical_m=tuple(self._param("sim.sphere_center")),
+                               **_finger_config(self))
         except FingerpsDriverError as exc:
             raise StartupError(str(exc)) from None
         rig = self._rig = SimulatedRig(config)

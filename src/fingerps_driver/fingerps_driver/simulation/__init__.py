@@ -5,9 +5,15 @@ The embedded default of fingerps and the ground truth of every accuracy figure. 
     rig = SimulatedRig(RigConfig())
     frame = rig.render(Scene.FINGER, [k], rng=np.random.default_rng(0))
     truth = rig.finger_truth()
+
+    rig = SimulatedRig(RigConfig(finger_identity=3, finger_roll_deg=10.0))
+    truth = rig.finger_truth()  # truth.rolled_mm: each pixel's point in the rolled plane
+    card = rig.rolled_print()  # 500 ppi; rig.fingerprint.minutiae in the same plane
 """
 
 from fingerps_driver.simulation.camera import PinholeCamera
+from fingerps_driver.simulation.fingerprint_pattern import FingerprintPattern
+from fingerps_driver.simulation.fingerprint_relief import RidgeRelief
 from fingerps_driver.simulation.fingertip import FingertipShape
 from fingerps_driver.simulation.led_field import LedRing
 from fingerps_driver.simulation.mirror_sphere import MirrorSphere
@@ -23,11 +29,13 @@ from fingerps_driver.simulation.white_target import WhiteTarget
 
 __all__ = [
     "FingerTruth",
+    "FingerprintPattern",
     "FingertipShape",
     "LedRing",
     "MirrorSphere",
     "PinholeCamera",
     "Reflectance",
+    "RidgeRelief",
     "RigConfig",
     "Scene",
     "SensorModel",

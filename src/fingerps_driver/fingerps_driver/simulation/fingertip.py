@@ -20,6 +20,27 @@ margins: distorted concentric ellipses (a whorl, optionally a one-armed spiral) 
 near the apex, warped by a low-frequency sinusoidal displacement. The ridge amplitude fades
 out within ~``core_radius`` of the core, where the phase is singular.
 
+A synthetic fingerprint (``relief``, a ``fingerprint_relief.RidgeRelief``) replaces the whorl
+when given: the displacement is 0.5 * ``ridge_height_m`` * its value at the point's skin
+coordinates (``skin_coordinates``), so its ridges are raised towards the camera. Skin
+coordinates use the finger's symmetry: the cap is an ellipsoid of revolution and every
+cross-section of the shaft a circle of radius R about the (bent) finger axis, so a point is
+(theta, dY), its azimuth about the axis (theta = 0 facing the camera) and its position along
+it. Its skin x is rho(dY) * theta (arc length along the cross-section circle of radius rho;
+exactly R * theta on the shaft), its skin y the arc length along the meridian from the apex's
+cross-section (on the cap an incomplete elliptic integral of the second kind, on the bent
+shaft the arc length of the parabola). Both are exact distances along the coordinate lines;
+the cap and the bent shaft are not developable, so no flat map keeps all distances (the
+coordinate lines meet at right angles on the cap, and within ~atan(slope_x * slope_y) of
+them on the shaft).
+
+Pose: ``roll_deg`` turns the finger about its own axis; the geometry is symmetric about it, so
+only the skin moves: theta -> theta - roll, exact on the cap and the shaft (a skin point at
+the apex moves to theta = roll, towards +x for roll > 0; on the shaft the skin x of a
+pixel's point drops by R * roll). ``yaw_deg`` turns the whole finger about the optical axis
+through the apex, from +x towards +y (clockwise as the image is displayed), exactly: (dx, dy)
+is rotated into the finger's frame and the gradient back. The apex position is the shift.
+
 Normals are from central differences of the full height field (step 0.25 um: truncation and
 round-off far below 1e-5 rad), so they are exact for the surface the renderer sees.
 """
@@ -29,7 +50,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import special
 
+from fingerps_driver.simulation.fingerprint_relief import RidgeRelief
 from fingerps_recon.frames import optical_to_ps
 
 _WARP_WAVELENGTHS_M = (9.0e-3, 13.0e-3)
@@ -72,6 +95,13 @@ class FingertipShape:
         Mean albedo and the relative standard deviation of its smooth variation.
     seed : int
         Seed of the warp phases and the albedo pattern.
+    roll_deg : float
+        Rotation about the finger's own axis (see the module docstring).
+    yaw_deg : float
+        Rotation of the whole finger about the optical axis through the apex, from +x
+        towards +y.
+    relief : RidgeRelief or None
+        Synthetic fingerprint carried instead of the whorl (None: the whorl).
     """
 
     apex_optical_m: tuple[float, float, float]
@@ -89,6 +119,9 @@ class FingertipShape:
     albedo_mean: float
     albedo_variation: float
     seed: int
+    roll_deg: float = 0.0
+    yaw_deg: float = 0.0
+    relief: RidgeRelief | None = None
 
     def _base(
         self, dx: np.ndarray, dy: np.ndarray
@@ -148,11 +181,81 @@ class FingertipShape:
         inside : ndarray bool
             Inside the finger's silhouette contour.
         u, v : ndarray float64
-            Unrolled surface coordinates, metres.
+            Unrolled surface coordinates, metres, where the skin pattern and the albedo are
+            evaluated: the whorl's (U, V), or ``skin_coordinates`` with a ``relief``.
         """
-        sag, gx, gy, inside, u, v = self._base(dx, dy)
-        h = sag - self._ridge(u, v) * np.sqrt(1.0 + gx * gx + gy * gy)
+        fx, fy = self._to_finger(dx, dy)
+        sag, gx, gy, inside, u, v = self._base(fx, fy)
+        if self.relief is not None:
+            u, v = self.skin_coordinates(fx, fy, finger_frame=True)
+            ridge = 0.5 * self.ridge_height_m * self.relief(u, v)
+        else:
+            if self.roll_deg != 0.0:
+                u, v = self._rolled_whorl_coordinates(fx, fy)
+            ridge = self._ridge(u, v)
+        h = sag - ridge * np.sqrt(1.0 + gx * gx + gy * gy)
+        if self.yaw_deg != 0.0:
+            c, s = np.cos(np.deg2rad(self.yaw_deg)), np.sin(np.deg2rad(self.yaw_deg))
+            gx, gy = c * gx - s * gy, s * gx + c * gy
         return h, gx, gy, inside, u, v
+
+    def _to_finger(self, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Offsets from the apex in the finger's frame (``yaw_deg`` undone)."""
+        if self.yaw_deg == 0.0:
+            return dx, dy
+        c, s = np.cos(np.deg2rad(self.yaw_deg)), np.sin(np.deg2rad(self.yaw_deg))
+        return c * dx + s * dy, c * dy - s * dx
+
+    def _azimuth(
+        self, fx: np.ndarray, fy: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(theta - roll, rho, dY / e on the cap else 0) in the finger's frame."""
+        big_r = self.radius_m
+        tip = fy < 0.0
+        ey = np.where(tip, fy / self.tip_elongation, 0.0)
+        rho = np.sqrt(np.maximum(big_r * big_r - ey * ey, (1e-3 * big_r) ** 2))
+        theta = np.arcsin(np.clip(fx / rho, -1.0, 1.0)) - np.deg2rad(self.roll_deg)
+        return theta, rho, ey
+
+    def skin_coordinates(
+        self, dx: np.ndarray, dy: np.ndarray, *, finger_frame: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Skin coordinates (x, y), metres from the apex, of surface points (module docstring).
+
+        Parameters
+        ----------
+        dx, dy : ndarray float64
+            X - Xa, Y - Ya of points on the surface, metres (already in the finger's frame,
+            ``yaw_deg`` undone, when ``finger_frame``).
+
+        Returns
+        -------
+        x, y : ndarray float64
+            Arc length around the finger (rho * (theta - roll)) and along it from the apex.
+        """
+        fx, fy = (dx, dy) if finger_frame else self._to_finger(dx, dy)
+        theta, rho, ey = self._azimuth(fx, fy)
+        big_r, e = self.radius_m, self.tip_elongation
+        beta = np.arcsin(np.clip(ey / big_r, -1.0, 0.0))
+        cap_y = e * big_r * special.ellipeinc(beta, 1.0 - 1.0 / (e * e))
+        big_l = self.length_radius_m
+        shaft = np.maximum(fy, 0.0) / big_l
+        shaft_y = 0.5 * big_l * (shaft * np.sqrt(1.0 + shaft * shaft) + np.arcsinh(shaft))
+        return rho * theta, np.where(fy < 0.0, cap_y, shaft_y)
+
+    def _rolled_whorl_coordinates(
+        self, fx: np.ndarray, fy: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The whorl's (U, V) of the skin point ``roll_deg`` brought to (fx, fy)."""
+        theta, rho, ey = self._azimuth(fx, fy)
+        big_r = self.radius_m
+        sx = rho * np.sin(theta)
+        r = np.hypot(sx, ey)
+        safe = np.maximum(r, 1e-12)
+        unroll = np.where(
+            r > 1e-12, big_r * np.arcsin(np.minimum(safe / big_r, 1.0)) / safe, 1.0
+        )
+        return sx * unroll, np.where(fy < 0.0, fy * unroll, fy)
 
     def albedo(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Smoothly varying albedo at unrolled coordinates (u, v), clipped to [0.02, 1]."""

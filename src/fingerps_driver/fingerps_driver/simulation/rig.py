@@ -15,6 +15,10 @@ Units: a unit of radiance is what a Lambertian albedo-1 surface facing a power-1
 axis at the reference distance (the working distance) reflects (``led_field``);
 ``exposure_gain`` (``white_target_exposure_gain`` for the white target) maps radiance to
 fraction of full scale.
+
+The finger carries the analytic spiral or, with ``RigConfig.finger_identity``, a synthetic
+fingerprint, whose ground truth the rig gives: ``fingerprint`` (ridges, minutiae, singular
+points), ``rolled_print()`` (500 ppi) and, per pixel, ``FingerTruth.rolled_mm``.
 """
 
 from __future__ import annotations
@@ -29,6 +33,11 @@ import numpy as np
 
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.simulation.camera import PinholeCamera
+from fingerps_driver.simulation.fingerprint_pattern import (
+    FingerprintPattern,
+    render_rolled_print,
+)
+from fingerps_driver.simulation.fingerprint_relief import relief_for_identity
 from fingerps_driver.simulation.fingertip import FingertipShape, FingertipSurface, trace_fingertip
 from fingerps_driver.simulation.led_field import LedRing
 from fingerps_driver.simulation.mirror_sphere import MirrorSphere, render_sphere
@@ -72,6 +81,18 @@ class RigConfig:
         silhouette), finger_length_radius_m (bend along the finger), ridge_height_m
         (peak-to-valley), ridge_period_m, ridge_core_offset_m, ridge_ellipticity,
         ridge_warp_m, ridge_spiral, albedo_mean, albedo_variation (relative std).
+        finger_identity: None for the analytic whorl/spiral (ridge_period_m ..
+        ridge_spiral), or the seed of a synthetic fingerprint
+        (``fingerprint_pattern.generate_fingerprint``, its own period map) carried as the
+        relief instead (``fingerprint_relief``; ridge_height_m still its height).
+        finger_roll_deg: rotation about the finger's own axis (in [-45, 45]; moves only the
+        skin, the shape is symmetric about the axis; + brings the skin at the apex towards
+        +x). finger_yaw_deg: rotation of the whole finger about the optical axis through
+        the apex, from +x towards +y (clockwise as displayed; in [-90, 90]). The shift is
+        finger_apex_optical_m. See ``fingertip`` for the skin coordinates and the pose.
+        The fingerprint is 20 mm wide (+-72 deg about an 8 mm finger) and the standard
+        finger shows +-65 deg of it: beyond ~7 deg of roll one margin shows skin past the
+        print's edge, where the relief fades to flat skin.
     Reflectance
         reflectance: HK (default) or LAMBERT. hk_scale: the global scale A of the
         single-scattering term (paper Eq. 4). hk_params: skin constants (default the
@@ -121,6 +142,9 @@ class RigConfig:
     ridge_spiral: bool = True
     albedo_mean: float = 0.5
     albedo_variation: float = 0.06
+    finger_identity: int | None = None
+    finger_roll_deg: float = 0.0
+    finger_yaw_deg: float = 0.0
     sphere_radius_m: float = 4e-3
     sphere_center_optical_m: tuple[float, float, float] = (2.0e-3, -1.5e-3, 0.094)
     sphere_diffuse_albedo: float = 0.08
@@ -177,6 +201,19 @@ class RigConfig:
                 fail(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.albedo_mean <= 1.0 or not 0.0 < self.white_target_albedo <= 1.0:
             fail("albedo_mean and white_target_albedo must be in (0, 1]")
+        if self.finger_identity is not None and (
+            isinstance(self.finger_identity, bool)
+            or not isinstance(self.finger_identity, (int, np.integer))
+            or self.finger_identity < 0
+        ):
+            fail(
+                f"finger_identity must be None (the spiral) or an integer >= 0, got "
+                f"{self.finger_identity!r}"
+            )
+        if not abs(self.finger_roll_deg) <= 45.0:
+            fail(f"finger_roll_deg {self.finger_roll_deg} outside [-45, 45]")
+        if not abs(self.finger_yaw_deg) <= 90.0:
+            fail(f"finger_yaw_deg {self.finger_yaw_deg} outside [-90, 90]")
         if self.sphere_supersample < 1:
             fail(f"sphere_supersample must be >= 1, got {self.sphere_supersample}")
         if not 10.0 <= self.finger_max_slope_deg <= 80.0:
@@ -224,12 +261,19 @@ class FingerTruth:
         Finger silhouette.
     albedo : (H, W) float32
         Albedo rho of the Lambertian term; zeros outside the mask.
+    rolled_mm : (H, W, 2) float32 or None
+        With a synthetic fingerprint (``RigConfig.finger_identity``): where the surface
+        point seen by each pixel lies in the fingerprint's rolled plane, (x, y) mm, x right,
+        y down, origin the pattern grid's top-left corner (as ``FingerprintPattern``'s
+        minutiae and ``SimulatedRig.rolled_print``); NaN outside the mask. None for the
+        spiral.
     """
 
     normals_ps: np.ndarray
     depth_m: np.ndarray
     mask: np.ndarray
     albedo: np.ndarray
+    rolled_mm: np.ndarray | None = None
 
 
 def _led_ring(config: RigConfig) -> LedRing:
@@ -257,7 +301,9 @@ class SimulatedRig:
 
     Construction is cheap; each (scene, LED) image is computed on first use (the finger's
     geometry ~0.6 s once, then ~0.1 s per LED; sphere ~0.06 s and target ~0.05 s per LED)
-    or all at once by ``warm_up``. A frame from the cache costs ~2-4 ms. Thread-safe.
+    or all at once by ``warm_up``. A frame from the cache costs ~2-4 ms. Thread-safe. With a
+    ``finger_identity`` the first rig of that identity also generates its fingerprint (~1 s;
+    cached per identity for the process).
 
     Attributes
     ----------
@@ -271,6 +317,9 @@ class SimulatedRig:
     leds : LedRing
         LED model (positions, axes, lobes, powers, field and disc radiance).
     fingertip : FingertipShape
+    fingerprint : FingerprintPattern or None
+        The synthetic fingerprint the finger carries (``RigConfig.finger_identity``): its
+        ridges, minutiae and singular points in the rolled plane (mm); None for the spiral.
     sphere : MirrorSphere
     white_target : WhiteTarget
     sensor : SensorModel
@@ -290,6 +339,9 @@ class SimulatedRig:
         self.leds = _led_ring(c)
         self.led_count = self.leds.count
         self.led_positions_optical = self.leds.positions_optical
+        relief = None if c.finger_identity is None else relief_for_identity(c.finger_identity)
+        self.fingerprint: FingerprintPattern | None = None if relief is None else relief.pattern
+        self._relief = relief
         self.fingertip = FingertipShape(
             apex_optical_m=tuple(c.finger_apex_optical_m),
             radius_m=c.finger_radius_m,
@@ -306,6 +358,9 @@ class SimulatedRig:
             albedo_mean=c.albedo_mean,
             albedo_variation=c.albedo_variation,
             seed=c.texture_seed,
+            roll_deg=float(c.finger_roll_deg),
+            yaw_deg=float(c.finger_yaw_deg),
+            relief=relief,
         )
         self.sphere = MirrorSphere(
             center_optical_m=tuple(c.sphere_center_optical_m),
@@ -359,12 +414,53 @@ class SimulatedRig:
         mask = surface.mask.copy()
         depth = np.full(mask.shape, np.nan, dtype=np.float32)
         depth[mask] = surface.points_optical[mask][:, 2]
+        rolled = None
+        if self._relief is not None:
+            rolled = np.full((*mask.shape, 2), np.nan, dtype=np.float32)
+            rolled[mask] = self.rolled_position_mm(surface.points_optical[mask])
         return FingerTruth(
             normals_ps=surface.normals_ps.astype(np.float32),
             depth_m=depth,
             mask=mask,
             albedo=surface.albedo.astype(np.float32),
+            rolled_mm=rolled,
         )
+
+    def rolled_position_mm(self, points_optical: np.ndarray) -> np.ndarray:
+        """Where points on the finger's surface lie in the fingerprint's rolled plane.
+
+        Parameters
+        ----------
+        points_optical : (..., 3) float64
+            Points on the finger's surface, metres, optical frame (only X and Y are used).
+
+        Returns
+        -------
+        rolled_mm : (..., 2) float64
+            (x, y) mm in the rolled plane (``FingerTruth.rolled_mm``).
+        """
+        if self._relief is None:
+            raise FingerpsDriverError(
+                "this rig's finger carries the analytic spiral, not a fingerprint; set "
+                "RigConfig.finger_identity"
+            )
+        points = np.asarray(points_optical, dtype=np.float64)
+        xa, ya, _ = self.config.finger_apex_optical_m
+        skin = self.fingertip.skin_coordinates(points[..., 0] - xa, points[..., 1] - ya)
+        return np.stack(self._relief.rolled_mm(*skin), axis=-1)
+
+    def rolled_print(self, *, ppi: float = 500.0) -> np.ndarray:
+        """The fingerprint's ground-truth rolled print, uint8, ridges dark, 500 ppi.
+
+        ``fingerprint_pattern.render_rolled_print``; pixel (i, j) covers rolled-plane mm
+        [j, j + 1) x [i, i + 1) times 25.4 / ppi.
+        """
+        if self.fingerprint is None:
+            raise FingerpsDriverError(
+                "this rig's finger carries the analytic spiral, not a fingerprint; set "
+                "RigConfig.finger_identity"
+            )
+        return render_rolled_print(self.fingerprint, ppi=ppi)
 
     def finger_points_optical(self) -> np.ndarray:
         """(H, W, 3) float64 surface point seen by each pixel centre; NaN outside the mask."""

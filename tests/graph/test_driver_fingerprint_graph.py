@@ -1,0 +1,76 @@
+"""driver_node with a synthetic fingerprint on the simulated finger (sim.finger_identity):
+its frames show that finger, a pose change is taken, a bad pose refused with a reason."""
+
+from __future__ import annotations
+
+import signal
+
+import cv2
+import numpy as np
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
+
+from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_msgs.srv import CaptureBurst
+from fingerps_recon import topics
+from fingerps_recon.image_conversion import image_to_array
+
+NS = "/" + topics.NAMESPACE
+
+
+def _call(client, request, spin_until, timeout: float = 60.0):
+    assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
+    future = client.call_async(request)
+    spin_until(future.done, f"the response of {client.srv_name}", timeout=timeout)
+    return future.result()
+
+
+def _first_frame(client, spin_until) -> np.ndarray:
+    response = _call(client, CaptureBurst.Request(response_only=True), spin_until)
+    assert response.success, response.message
+    return image_to_array(response.burst.frames[0].image).astype(np.float64)
+
+
+def _correlation(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def _ridges(image: np.ndarray) -> np.ndarray:
+    """The ridge band of an image: minus a 5 px box mean."""
+    return image - cv2.blur(image, (5, 5))
+
+
+def test_the_driver_shows_the_fingerprint_it_is_given_and_takes_a_new_pose(
+        ros_node: Node, start_node, spin_until) -> None:
+    driver = start_node("fingerps_driver", "driver_node", "--ros-args",
+                        "-p", "sim.finger_identity:=3")
+    driver.wait_in_graph(ros_node, "driver", NS, timeout=60.0)
+    capture = ros_node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
+    set_params = ros_node.create_client(SetParameters, f"{NS}/driver/set_parameters")
+
+    def set_roll(value: float):
+        request = SetParameters.Request(parameters=[ParameterMsg(
+            name="sim.finger_roll_deg",
+            value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))])
+        return _call(set_params, request, spin_until).results[0]
+
+    def ridge_match(frame: np.ndarray, config: RigConfig) -> float:
+        reference = SimulatedRig(config).noiseless(Scene.FINGER, [0])
+        return _correlation(_ridges(frame), _ridges(reference.astype(np.float64)))
+
+    frame = _first_frame(capture, spin_until)
+    assert ridge_match(frame, RigConfig(finger_identity=3)) > 0.5
+    assert ridge_match(frame, RigConfig()) < 0.2  # not the spiral
+
+    refused = set_roll(60.0)
+    assert not refused.successful and "45" in refused.reason, refused.reason
+    assert set_roll(8.0).successful
+    frame = _first_frame(capture, spin_until)
+    assert ridge_match(frame, RigConfig(finger_identity=3, finger_roll_deg=8.0)) > 0.5
+    assert ridge_match(frame, RigConfig(finger_identity=3)) < 0.3
+
+    driver.send_signal(signal.SIGTERM)
+    assert driver.wait() == 0
