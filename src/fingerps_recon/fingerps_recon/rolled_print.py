@@ -89,7 +89,7 @@ class RolledPrintOptions:
     """Difference of Gaussians on the print plane (fine, coarse), millimetres."""
     normalisation_sigma_mm: float = 0.4
     """Gaussian window of the local mean and standard deviation (~1 mm across)."""
-    mesh_spacing_mm: float = 0.4
+    mesh_spacing_mm: float = 0.5
     border_px: int = 8
     """White margin around the finger, print pixels."""
     trim_mm: float = 0.2
@@ -234,7 +234,7 @@ def rolled_print(
     r0 = math.floor(y_min * ppmm) - b
     cols = np.arange(c0, math.ceil(x_max * ppmm) + b + 1)
     rows = np.arange(r0, math.ceil(y_max * ppmm) + b + 1)
-    src_x, src_y = unrolling.source_pixels(cols / ppmm, rows / ppmm, coarse_step=2)
+    src_x, src_y = unrolling.source_pixels(cols / ppmm, rows / ppmm)
     off = ~np.isfinite(src_x) | ~np.isfinite(src_y)
     src_x[off] = -1e4
     src_y[off] = -1e4
