@@ -9,6 +9,7 @@ from scipy import ndimage
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_driver.simulation.fingertip import trace_fingertip
+from fingerps_recon.frames import ps_to_optical
 
 IDENTITY = 3
 
@@ -175,6 +176,39 @@ def test_yaw_turns_the_finger_about_the_optical_axis():
     assert turned.finger_truth().mask.sum() > 0.8 * a.mask.sum()
 
 
+@pytest.mark.parametrize("pitch", [-10.0, 12.0])
+def test_pitch_turns_the_finger_about_the_optical_x_axis(pitch):
+    """A pitched finger's hits, turned back about the apex, lie on the level finger's height
+    field, with its normals there, on their pixels' rays; the rolled mapping goes along."""
+    level = SimulatedRig(_coarse(finger_identity=IDENTITY))
+    pitched = SimulatedRig(_coarse(finger_identity=IDENTITY, finger_pitch_deg=pitch))
+    truth = pitched.finger_truth()
+    mask = truth.mask
+    assert mask.sum() > 0.8 * level.finger_truth().mask.sum()
+    points = pitched.finger_points_optical()[mask]
+    rays = pitched.camera.pixel_rays()[mask]
+    np.testing.assert_allclose(points / points[:, 2:], rays, atol=1e-12)
+    shape = level.fingertip
+    xa, ya, za = shape.apex_optical_m
+    back = pitched.fingertip.to_finger_frame(points)
+    dx, dy = back[:, 0] - xa, back[:, 1] - ya
+    np.testing.assert_allclose(za + shape.height(dx, dy)[0], back[:, 2], atol=1e-9)
+    eps = 0.25e-6
+    hx = (shape.height(dx + eps, dy)[0] - shape.height(dx - eps, dy)[0]) / (2 * eps)
+    hy = (shape.height(dx, dy + eps)[0] - shape.height(dx, dy - eps)[0]) / (2 * eps)
+    expected = np.stack([hx, hy, -np.ones_like(hx)], axis=-1)
+    expected /= np.linalg.norm(expected, axis=-1, keepdims=True)
+    normals = ps_to_optical(truth.normals_ps[mask].astype(np.float64))
+    turned_back = normals @ pitched.fingertip.pitch_matrix()
+    np.testing.assert_allclose(turned_back, expected, atol=1e-6)
+    np.testing.assert_allclose(
+        truth.rolled_mm[mask], level.rolled_position_mm(back), atol=1e-4)
+    # + brings the tip (rolled y small) nearer the camera
+    tip = truth.rolled_mm[mask][:, 1] < 4.0
+    tilt = points[tip, 2] - back[tip, 2]
+    assert np.all(tilt < 0) if pitch > 0 else np.all(tilt > 0)
+
+
 def test_different_identities_are_different_fingers():
     normals = [
         SimulatedRig(_coarse(finger_identity=identity)).finger_truth()
@@ -196,6 +230,7 @@ def test_different_identities_are_different_fingers():
         ("finger_identity", 2.5, "finger_identity"),
         ("finger_roll_deg", 46.0, "finger_roll_deg"),
         ("finger_yaw_deg", -91.0, "finger_yaw_deg"),
+        ("finger_pitch_deg", 16.0, "finger_pitch_deg"),
         ("finger_roll_deg", float("nan"), "finger_roll_deg"),
     ],
 )

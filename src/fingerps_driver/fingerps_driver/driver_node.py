@@ -118,7 +118,7 @@ def _sphere_center_problem(value: list[float]) -> str | None:
 
 
 _FINGER_POSE = ("sim.finger_identity", "sim.finger_roll_deg", "sim.finger_yaw_deg",
-                "sim.finger_shift_mm")
+                "sim.finger_pitch_deg", "sim.finger_shift_mm")
 
 
 def _finger_shift_problem(value: list[float]) -> str | None:
@@ -137,6 +137,7 @@ def _finger_config(node: Node) -> dict:
         "finger_identity": None if identity < 0 else identity,
         "finger_roll_deg": float(node.get_parameter("sim.finger_roll_deg").value),
         "finger_yaw_deg": float(node.get_parameter("sim.finger_yaw_deg").value),
+        "finger_pitch_deg": float(node.get_parameter("sim.finger_pitch_deg").value),
         "finger_apex_optical_m": (x + shift[0], y + shift[1], z),
     }
 
@@ -252,6 +253,8 @@ class DriverNode(Node):
                    "must be within +-45 degrees (beyond, the skin seen leaves the rolled print)")
         checks.add("sim.finger_yaw_deg", lambda v: None if abs(v) <= 90.0 else
                    "must be within +-90 degrees")
+        checks.add("sim.finger_pitch_deg", lambda v: None if abs(v) <= 15.0 else
+                   "must be within +-15 degrees (beyond, a margin comes near grazing)")
         checks.add("sim.finger_shift_mm", _finger_shift_problem)
         checks.add("led_order", lambda v: check_led_order(list(v), self._led_count))
         checks.add("exposure_times",
@@ -381,6 +384,10 @@ class DriverNode(Node):
             "Rotation of the simulated finger about the optical axis through its apex, "
             "degrees, from +x towards +y (clockwise as displayed)",
             min_value=-90.0, max_value=90.0))
+        p("sim.finger_pitch_deg", 0.0, descriptor(
+            "Then its rotation about the optical x axis through its apex, degrees, from +y "
+            "towards +z (+ brings the tip towards the camera)",
+            min_value=-15.0, max_value=15.0))
         p("sim.finger_shift_mm", [0.0, 0.0], descriptor(
             "Shift [dx, dy] of the simulated finger's apex in the image plane, mm (optical "
             "x right, y down), each within +-5"))

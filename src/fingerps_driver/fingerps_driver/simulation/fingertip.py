@@ -39,7 +39,11 @@ only the skin moves: theta -> theta - roll, exact on the cap and the shaft (a sk
 the apex moves to theta = roll, towards +x for roll > 0; on the shaft the skin x of a
 pixel's point drops by R * roll). ``yaw_deg`` turns the whole finger about the optical axis
 through the apex, from +x towards +y (clockwise as the image is displayed), exactly: (dx, dy)
-is rotated into the finger's frame and the gradient back. The apex position is the shift.
+is rotated into the finger's frame and the gradient back. ``pitch_deg`` then turns it about
+the optical x axis through the apex, from +y towards +z (+ brings the tip, at -y, towards the
+camera), also exactly: ``trace_fingertip`` traces the camera's rays in the finger's frame
+(the camera centre moved, the rays turned; the height field is unchanged) and turns the hits
+and normals back. The apex position is the shift.
 
 Normals are from central differences of the full height field (step 0.25 um: truncation and
 round-off far below 1e-5 rad), so they are exact for the surface the renderer sees.
@@ -47,13 +51,13 @@ round-off far below 1e-5 rad), so they are exact for the surface the renderer se
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import special
 
 from fingerps_driver.simulation.fingerprint_relief import RidgeRelief
-from fingerps_recon.frames import optical_to_ps
+from fingerps_recon.frames import optical_to_ps, ps_to_optical
 
 _WARP_WAVELENGTHS_M = (9.0e-3, 13.0e-3)
 _ALBEDO_COMPONENTS = 8
@@ -100,6 +104,8 @@ class FingertipShape:
     yaw_deg : float
         Rotation of the whole finger about the optical axis through the apex, from +x
         towards +y.
+    pitch_deg : float
+        Then about the optical x axis through the apex, from +y towards +z.
     relief : RidgeRelief or None
         Synthetic fingerprint carried instead of the whorl (None: the whorl).
     """
@@ -121,7 +127,21 @@ class FingertipShape:
     seed: int
     roll_deg: float = 0.0
     yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
     relief: RidgeRelief | None = None
+
+    def pitch_matrix(self) -> np.ndarray:
+        """(3, 3) rotation, optical frame <- finger frame, about the x axis (``pitch_deg``)."""
+        c, s = np.cos(np.deg2rad(self.pitch_deg)), np.sin(np.deg2rad(self.pitch_deg))
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+    def to_finger_frame(self, points_optical: np.ndarray) -> np.ndarray:
+        """Points (..., 3) of the optical frame in the frame the height field is defined in
+        (``pitch_deg`` undone about the apex); the points themselves when it is 0."""
+        if self.pitch_deg == 0.0:
+            return points_optical
+        apex = np.asarray(self.apex_optical_m, dtype=np.float64)
+        return (np.asarray(points_optical) - apex) @ self.pitch_matrix() + apex
 
     def _base(
         self, dx: np.ndarray, dy: np.ndarray
@@ -324,7 +344,8 @@ def trace_fingertip(shape: FingertipShape, rays_optical: np.ndarray) -> Fingerti
     """Intersect pixel rays with the fingertip height field.
 
     Newton iteration on t = Za + h(t*rx - Xa, t*ry - Ya) along each ray (rays scaled to
-    z = 1, so t is the depth Z), with the base surface's gradient as the Jacobian.
+    z = 1, so t is the depth Z), with the base surface's gradient as the Jacobian. With a
+    ``pitch_deg``, in the finger's frame (module docstring).
 
     Parameters
     ----------
@@ -336,6 +357,8 @@ def trace_fingertip(shape: FingertipShape, rays_optical: np.ndarray) -> Fingerti
     -------
     FingertipSurface
     """
+    if shape.pitch_deg != 0.0:
+        return _trace_pitched(shape, rays_optical)
     xa, ya, za = shape.apex_optical_m
     rx = rays_optical[..., 0].ravel()
     ry = rays_optical[..., 1].ravel()
@@ -359,3 +382,23 @@ def trace_fingertip(shape: FingertipShape, rays_optical: np.ndarray) -> Fingerti
     albedo = np.zeros(mask.shape)
     albedo[mask] = shape.albedo(u[mask], v[mask])
     return FingertipSurface(points_optical=points, normals_ps=normals, mask=mask, albedo=albedo)
+
+
+def _trace_pitched(shape: FingertipShape, rays_optical: np.ndarray) -> FingertipSurface:
+    """``trace_fingertip`` of a pitched finger: in the finger's frame, where the camera
+    centre is at ``origin`` and a ray's direction is R^T d; the tracer takes rays from its
+    origin, so the apex is moved by -origin instead, and the hits are moved back."""
+    rot = shape.pitch_matrix()
+    apex = np.asarray(shape.apex_optical_m, dtype=np.float64)
+    origin = apex - rot.T @ apex
+    rays = rays_optical @ rot
+    if np.any(rays[..., 2] <= 0.0):
+        raise ValueError("pitch_deg turns some pixel rays away from the finger")
+    rays = rays / rays[..., 2:]
+    level = replace(shape, apex_optical_m=tuple(apex - origin), pitch_deg=0.0)
+    surface = trace_fingertip(level, rays)
+    points = (surface.points_optical + origin - apex) @ rot.T + apex
+    normals = optical_to_ps(ps_to_optical(surface.normals_ps) @ rot.T)
+    return FingertipSurface(
+        points_optical=points, normals_ps=normals, mask=surface.mask, albedo=surface.albedo
+    )

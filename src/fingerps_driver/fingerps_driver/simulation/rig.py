@@ -88,7 +88,10 @@ class RigConfig:
         finger_roll_deg: rotation about the finger's own axis (in [-45, 45]; moves only the
         skin, the shape is symmetric about the axis; + brings the skin at the apex towards
         +x). finger_yaw_deg: rotation of the whole finger about the optical axis through
-        the apex, from +x towards +y (clockwise as displayed; in [-90, 90]). The shift is
+        the apex, from +x towards +y (clockwise as displayed; in [-90, 90]).
+        finger_pitch_deg: then about the optical x axis through the apex, from +y towards +z
+        (+ brings the tip towards the camera; in [-15, 15]: beyond, the tip's or the
+        shaft's margin comes within a few degrees of grazing). The shift is
         finger_apex_optical_m. See ``fingertip`` for the skin coordinates and the pose.
         The fingerprint is 20 mm wide (+-72 deg about an 8 mm finger) and the standard
         finger shows +-65 deg of it: beyond ~7 deg of roll one margin shows skin past the
@@ -145,6 +148,7 @@ class RigConfig:
     finger_identity: int | None = None
     finger_roll_deg: float = 0.0
     finger_yaw_deg: float = 0.0
+    finger_pitch_deg: float = 0.0
     sphere_radius_m: float = 4e-3
     sphere_center_optical_m: tuple[float, float, float] = (2.0e-3, -1.5e-3, 0.094)
     sphere_diffuse_albedo: float = 0.08
@@ -214,6 +218,8 @@ class RigConfig:
             fail(f"finger_roll_deg {self.finger_roll_deg} outside [-45, 45]")
         if not abs(self.finger_yaw_deg) <= 90.0:
             fail(f"finger_yaw_deg {self.finger_yaw_deg} outside [-90, 90]")
+        if not abs(self.finger_pitch_deg) <= 15.0:
+            fail(f"finger_pitch_deg {self.finger_pitch_deg} outside [-15, 15]")
         if self.sphere_supersample < 1:
             fail(f"sphere_supersample must be >= 1, got {self.sphere_supersample}")
         if not 10.0 <= self.finger_max_slope_deg <= 80.0:
@@ -360,6 +366,7 @@ class SimulatedRig:
             seed=c.texture_seed,
             roll_deg=float(c.finger_roll_deg),
             yaw_deg=float(c.finger_yaw_deg),
+            pitch_deg=float(c.finger_pitch_deg),
             relief=relief,
         )
         self.sphere = MirrorSphere(
@@ -432,7 +439,7 @@ class SimulatedRig:
         Parameters
         ----------
         points_optical : (..., 3) float64
-            Points on the finger's surface, metres, optical frame (only X and Y are used).
+            Points on the finger's surface, metres, optical frame.
 
         Returns
         -------
@@ -444,7 +451,7 @@ class SimulatedRig:
                 "this rig's finger carries the analytic spiral, not a fingerprint; set "
                 "RigConfig.finger_identity"
             )
-        points = np.asarray(points_optical, dtype=np.float64)
+        points = self.fingertip.to_finger_frame(np.asarray(points_optical, dtype=np.float64))
         xa, ya, _ = self.config.finger_apex_optical_m
         skin = self.fingertip.skin_coordinates(points[..., 0] - xa, points[..., 1] - ya)
         return np.stack(self._relief.rolled_mm(*skin), axis=-1)
