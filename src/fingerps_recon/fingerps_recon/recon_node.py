@@ -31,6 +31,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon import qos, topics
@@ -55,6 +56,7 @@ from fingerps_recon.pipeline import (
     reconstruct_prepared,
 )
 from fingerps_recon.point_cloud_conversion import points_to_cloud
+from fingerps_recon.rolled_print import RolledPrint, RolledPrintError, rolled_print
 
 _FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
 # Outcome of a burst, for the diagnostic level.
@@ -92,6 +94,10 @@ class ReconNode(Node):
         p("mask_threshold", 0.15, descriptor(
             "Finger mask: fraction of the brightest level a pixel must exceed",
             min_value=0.01, max_value=0.9))
+        p("fingerprint", False, descriptor(
+            "Also publish the rolled-equivalent 500 ppi print of every burst on 'fingerprint' "
+            "(mono8, ridges dark; ~50 ms a burst on top of the reconstruction, so off by "
+            "default; the Scan action always makes one)"))
         p("enhance", True, descriptor(
             "Publish the normal map after ridge enhancement (paper Eq. 12); the normals "
             "topic always carries the unenhanced normals"))
@@ -165,6 +171,11 @@ class ReconNode(Node):
         self._pub_depth = self.create_publisher(Image, topics.DEPTH, qos.OUTPUT_QOS)
         self._pub_albedo = self.create_publisher(Image, topics.ALBEDO, qos.OUTPUT_QOS)
         self._pub_points = self.create_publisher(PointCloud2, topics.POINTS, qos.OUTPUT_QOS)
+        self._pub_print = self.create_publisher(Image, topics.FINGERPRINT, qos.OUTPUT_QOS)
+        self._prints_made = 0
+        self._prints_rejected = 0
+        self._last_print_problem = ""
+        self._print_ms: deque[float] = deque(maxlen=50)
         self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self.create_timer(1.0, guarded("diagnostics", self._publish_diagnostics))
         self._worker = threading.Thread(target=self._work, name="recon_worker")
@@ -377,6 +388,9 @@ class ReconNode(Node):
         self._pub_albedo.publish(array_to_image(result.albedo, encoding="32FC1", header=header))
         self._pub_points.publish(points_to_cloud(result.points_optical, result.point_albedo,
                                                  header=header))
+        if self.get_parameter("fingerprint").value and not self._publish_fingerprint(made,
+                                                                                     burst):
+            outcome = _WARN
         stamp_ns = header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
         self._stages.add(stamp_ns, arrival_ns, start_ns, result.timings_ms["total"],
                          time.time_ns())
@@ -387,6 +401,24 @@ class ReconNode(Node):
         self.get_logger().info(
             f"burst {burst.burst_id}: {result.mask.sum()} px, "
             f"{result.timings_ms['total']:.0f} ms ({stages} ms)", throttle_duration_sec=2.0)
+
+    def _publish_fingerprint(self, made: BurstReconstruction, burst: Burst) -> bool:
+        """Publish the burst's rolled print; False (logged, counted) when it cannot be made."""
+        start = time.perf_counter()
+        try:
+            made_print = made.fingerprint()
+        except RolledPrintError as exc:
+            self._prints_rejected += 1
+            self._last_print_problem = f"burst {burst.burst_id}: no fingerprint: {exc}"
+            self._last_problem = self._last_print_problem
+            self.get_logger().warning(self._last_print_problem, throttle_duration_sec=5.0)
+            return False
+        self._print_ms.append((time.perf_counter() - start) * 1e3)
+        header = Header(stamp=burst.header.stamp, frame_id=topics.FINGERPRINT_FRAME)
+        self._pub_print.publish(array_to_image(made_print.image, encoding="mono8",
+                                               header=header))
+        self._prints_made += 1
+        return True
 
     # ------------------------------------------------------------------ diagnostics, exit
     def _level(self) -> tuple[bytes, str]:
@@ -427,6 +459,13 @@ class ReconNode(Node):
                                   value=str(self._flat_unused)),
                          KeyValue(key="last_error", value=self._last_error),
                          KeyValue(key="last_problem", value=self._last_problem),
+                         KeyValue(key="fingerprints_made", value=str(self._prints_made)),
+                         KeyValue(key="fingerprints_rejected", value=str(self._prints_rejected)),
+                         KeyValue(key="last_fingerprint_problem",
+                                  value=self._last_print_problem),
+                         KeyValue(key="fingerprint_ms_median", value=(
+                             f"{float(np.median(self._print_ms)):.1f}" if self._print_ms
+                             else "")),
                          KeyValue(key="bursts_dropped", value=str(self._dropped)),
                          KeyValue(key="calibrated", value=str(self._lights is not None)),
                          KeyValue(key="calibrations_prepared",
@@ -506,6 +545,15 @@ class BurstReconstruction:
     dark: np.ndarray | None       # (H, W) the burst's dark frame
     full_scale: float
     flat_field_used: bool
+    camera_matrix: np.ndarray     # (3, 3) K of the burst's camera_info
+
+    def fingerprint(self) -> RolledPrint:
+        """The rolled-equivalent 500 ppi print of this reconstruction
+        (`fingerps_recon.rolled_print`); raises `RolledPrintError` with the reason when the
+        reconstruction covers too little of the finger or is too noisy or strained."""
+        result = self.result
+        return rolled_print(result.depth_m, mask=result.mask, camera_matrix=self.camera_matrix,
+                            normals_ps=result.normals_ps)
 
 
 class PreparedCalibrations:
@@ -580,7 +628,7 @@ def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndar
             f"nothing reconstructed: {int(result.mask.sum())} pixels with a valid normal, "
             f"{len(result.points_optical)} points although the mask found a finger; check "
             "the light calibration (recalibrate the lights and the flat field)")
-    return BurstReconstruction(result, images, dark, full_scale, maps is not None)
+    return BurstReconstruction(result, images, dark, full_scale, maps is not None, k_matrix)
 
 
 class IncompleteBurstError(FingerpsReconError):

@@ -111,18 +111,20 @@ TOPIC_TABLE: dict[str, RecordedTopic] = {
     topics.ALBEDO: RecordedTopic("sensor_msgs/msg/Image", qos.OUTPUT_QOS),
     topics.POINTS: RecordedTopic("sensor_msgs/msg/PointCloud2", qos.OUTPUT_QOS),
     topics.NORMAL_MAP: RecordedTopic("sensor_msgs/msg/Image", qos.OUTPUT_QOS),
+    topics.FINGERPRINT: RecordedTopic("sensor_msgs/msg/Image", qos.OUTPUT_QOS),
 }
 """Every topic the recorder can record (names relative to the node's namespace)."""
 
 SESSION_TOPICS: tuple[str, ...] = (
     topics.FRAMES, topics.CAMERA_INFO, topics.BURST, topics.LIGHT_CALIBRATION,
     topics.FLAT_FIELD, topics.NORMALS, topics.DEPTH, topics.ALBEDO, topics.POINTS,
-    topics.NORMAL_MAP,
+    topics.NORMAL_MAP, topics.FINGERPRINT,
 )
 """Recorded by default."""
 
 OUTPUT_TOPICS: frozenset[str] = frozenset(
-    {topics.NORMALS, topics.DEPTH, topics.ALBEDO, topics.POINTS, topics.NORMAL_MAP})
+    {topics.NORMALS, topics.DEPTH, topics.ALBEDO, topics.POINTS, topics.NORMAL_MAP,
+     topics.FINGERPRINT})
 """The heavy reconstruction outputs that ``record_outputs:=false`` leaves out."""
 
 

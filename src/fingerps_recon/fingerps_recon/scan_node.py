@@ -43,7 +43,7 @@ from rclpy.client import Client
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import String
+from std_msgs.msg import Header, String
 
 from fingerps_msgs.action import Scan
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
@@ -70,6 +70,7 @@ from fingerps_recon.recon_node import (
     PreparedCalibrations,
     reconstruct_burst,
 )
+from fingerps_recon.rolled_print import RolledPrintError
 
 SCAN = "scan"                       # fingerps_msgs/action/Scan
 SCAN_REJECTIONS = "scan/rejections"  # std_msgs/String: why a goal was rejected
@@ -446,6 +447,17 @@ class ScanNode(Node):
         result.normal_map = array_to_image(normal_map_rgb(shown, mask=rec.mask),
                                            encoding="rgb8", header=header)
         result.points = points_to_cloud(rec.points_optical, rec.point_albedo, header=header)
+        try:
+            made_print = best.made.fingerprint()
+        except RolledPrintError as exc:  # never a garbage print passed as good
+            result.accepted = False
+            result.reasons = [*result.reasons, f"fingerprint: {exc}"]
+            result.message = (f"burst {best.burst.burst_id}: rejected: "
+                              + "; ".join(result.reasons))
+        else:
+            result.fingerprint = array_to_image(
+                made_print.image, encoding="mono8",
+                header=Header(stamp=header.stamp, frame_id=topics.FINGERPRINT_FRAME))
         result.finger_coverage = f.coverage
         result.saturated_fraction = f.saturated_fraction
         result.dark_fraction = f.dark_fraction

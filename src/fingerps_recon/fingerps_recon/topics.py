@@ -27,5 +27,7 @@ NORMAL_MAP = "normal_map"           # sensor_msgs/Image rgb8, normals as colours
 DEPTH = "depth"                     # sensor_msgs/Image 32FC1, metres along the optical axis
 ALBEDO = "albedo"                   # sensor_msgs/Image 32FC1, albedo rho per pixel
 POINTS = "points"                   # sensor_msgs/PointCloud2, x y z intensity, optical frame
+FINGERPRINT = "fingerprint"         # sensor_msgs/Image mono8, rolled-equivalent print, 500 ppi
+FINGERPRINT_FRAME = "fingerps_rolled_print_500ppi"  # its frame_id: the rolled plane, 500 ppi
 
 DIAGNOSTICS = "/diagnostics"        # diagnostic_msgs/DiagnosticArray (absolute, as usual)
