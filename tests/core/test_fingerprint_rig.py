@@ -103,6 +103,20 @@ def test_the_rolled_print_and_its_minutiae_are_exposed(rig, truth):
     assert inside.min() >= 0.0 and inside[:, 0].max() <= rig.fingerprint.width_mm
 
 
+def test_the_camera_sees_the_print_mirrored(rig, truth):
+    """A rolled print is the skin's mirror image: along an image row through the apex the
+    rolled x falls as the image x rises (finger pointing up the image), and the rolled y
+    rises down the image's centre column, unmirrored."""
+    rolled = truth.rolled_mm.astype(np.float64)
+    apex = rig.camera.project(np.asarray(rig.config.finger_apex_optical_m)[None])[0]
+    row, col = round(float(apex[1])), round(float(apex[0]))
+    cols = np.flatnonzero(truth.mask[row])
+    rows = np.flatnonzero(truth.mask[:, col])
+    # smooth rolled coordinates: the ridges move the hits by < 0.05 mm
+    assert np.all(np.diff(rolled[row, cols, 0]) < 0.0)
+    assert np.all(np.diff(rolled[rows, col, 1]) > 0.0)
+
+
 def test_points_5_mm_apart_in_the_rolled_plane_are_5_mm_apart_on_the_skin(rig, truth):
     """Pairs of shaft pixels in one image row ~5 mm apart in the rolled plane: their 3D
     distance along the (bent) shaft surface is the same within 1 % (the bent shaft is not
@@ -114,7 +128,8 @@ def test_points_5_mm_apart_in_the_rolled_plane_are_5_mm_apart_on_the_skin(rig, t
     errors = []
     for row in np.flatnonzero(shaft.any(axis=1))[::10]:
         cols = np.flatnonzero(shaft[row])
-        x = rolled[row, cols, 0]  # grows along the row
+        cols = cols[::-1]
+        x = rolled[row, cols, 0]  # falls along the row (mirrored), grows along cols
         for i in range(0, len(cols), 20):
             j = np.searchsorted(x, x[i] + 5.0)
             if j < len(cols):
@@ -145,12 +160,12 @@ def test_roll_shifts_the_rolled_coordinates_by_r_times_the_angle():
     assert np.mean(a.mask != b.mask) < 1e-3  # the shape is symmetric about its axis
     points = still.finger_points_optical()[a.mask]
     shift = rolled.rolled_position_mm(points) - still.rolled_position_mm(points)
-    expected = -1e3 * still.config.finger_radius_m * np.deg2rad(10.0)
+    expected = 1e3 * still.config.finger_radius_m * np.deg2rad(10.0)  # rolled x is mirrored
     shaft = points[:, 1] > still.config.finger_apex_optical_m[1]
     np.testing.assert_allclose(shift[shaft, 0], expected, atol=1e-9)
     np.testing.assert_allclose(shift[:, 1], 0.0, atol=1e-9)
     # on the cap the shift is rho(dY) * angle, rho the cross-section's radius: smaller
-    assert np.all((shift[~shaft, 0] >= expected) & (shift[~shaft, 0] < 0.0))
+    assert np.all((shift[~shaft, 0] <= expected) & (shift[~shaft, 0] > 0.0))
     # the truth says the same pixel by pixel, within the ridges' lateral effect on the hits
     both = a.mask & b.mask
     pixel_shaft = both & (still.finger_points_optical()[..., 1]

@@ -161,6 +161,23 @@ def test_print_format(ridged) -> None:
     assert result.strain_rms < 1e-3
 
 
+def test_print_is_the_mirror_of_the_camera_view(ridged) -> None:
+    """Legacy orientation (a contact print is the skin's mirror image): along a print row
+    the source column falls, down a print column the source row rises; ``origin_mm`` is in
+    print x = minus the unrolled x."""
+    _, _, _, result = ridged
+    row = int(np.flatnonzero(result.mask.any(axis=1)).mean())
+    col = int(np.flatnonzero(result.mask.any(axis=0)).mean())
+    along = result.source_x[row, result.mask[row]]
+    down = result.source_y[result.mask[:, col], col]
+    assert np.all(np.diff(along) < 0.0) and np.all(np.diff(down) > 0.0)
+    unrolled = result.unrolling.pixel_xy_mm
+    i, j = row, np.flatnonzero(result.mask[row])[len(along) // 3]
+    u, v = round(float(result.source_x[i, j])), round(float(result.source_y[i, j]))
+    print_x = result.origin_mm[0] + j / result.px_per_mm
+    assert print_x == pytest.approx(-unrolled[v, u, 0], abs=0.05)
+
+
 def test_too_little_finger() -> None:
     depth, mask, arc = ridged_cylinder()
     small = mask & (np.hypot(arc[..., 0], arc[..., 1]) < 3.0)  # ~28 mm^2

@@ -17,7 +17,7 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    window is cut by the outline, and leaves a smeared band along it (both give 0.98 beyond
    1 mm from the outline). The Laplacian is the default.
 2. Unrolling (springs model) and resampling at exactly ``ppi`` (19.685 px/mm at 500 ppi)
-   with ``cv2.remap`` through the inverse map of the unrolling.
+   with ``cv2.remap`` through the inverse map of the unrolling, mirrored left-right (below).
 3. Band pass on the print plane, where the ridge period is the skin's: a difference of
    Gaussians (sigma 0.06 and 0.3 mm: passes periods of ~0.25-1.2 mm), as normalized
    convolutions within the print's mask, so the outside does not enter.
@@ -25,6 +25,16 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    (Gaussian sigma 0.4 mm), then ridges dark on white: grey = 127.5 (1 - n / 2) clipped to
    0..255 (a sinusoidal ridge spans ~37..218), 255 outside the finger. Optionally
    contextual Gabor filtering before the grey levels (``RolledPrintOptions.gabor``).
+
+Orientation: the legacy one of rolled and contact prints, which matchers' galleries hold.
+A print is the mirror image of the skin seen from outside (the skin touches the card or
+the platen, as a stamp does), while the camera sees the skin from outside, so the print is
+the camera's view mirrored left-right: with the finger pointing up the image, print x
+(right) is minus the unrolled x of :mod:`fingerps_recon.surface_unrolling` (which keeps the
+camera's view), print y (down) is the unrolled y. The simulated rig follows the same
+convention (``fingerps_driver.simulation.fingertip``: the skin carries its ground-truth
+rolled print mirrored), so a print of the rig's finger matches ``rig.rolled_print()`` up to
+a small similarity transform, without a flip (``bench/bench_fingerprint.py``: bozorth3).
 
 Quality facts: the print's area (mm^2), the unrolling's strain (rms and max relative
 difference of 2D and 3D spring lengths) and the mean ridge-orientation coherence of the
@@ -117,14 +127,16 @@ class RolledPrint:
     Attributes
     ----------
     image : (Ho, Wo) uint8
-        Ridges dark on white, 255 outside the finger.
+        Ridges dark on white, 255 outside the finger; the legacy orientation, the mirror
+        image of the camera's view (module docstring).
     mask : (Ho, Wo) bool
         Print pixels on the finger.
     ppi : float
         Resolution, pixels per inch (the pixel pitch is 25.4 / ppi mm).
     origin_mm : (2,) float
-        Unrolled (x, y) of the centre of print pixel (0, 0); x right, y down, millimetres,
-        the apex (the point nearest the camera) at (0, 0).
+        Print-plane (x, y) of the centre of print pixel (0, 0), millimetres; x right, y
+        down, the apex (the point nearest the camera) at (0, 0). Print x is minus the
+        unrolled x (``unrolling``'s, the camera's view): the print is its mirror image.
     source_x, source_y : (Ho, Wo) float32
         Source image column and row of each print pixel; NaN off the unrolled surface.
     area_mm2 : float
@@ -236,6 +248,8 @@ def rolled_print(
     rows = np.arange(r0, math.ceil(y_max * ppmm) + b + 1)
     src_x, src_y = unrolling.source_pixels(cols / ppmm, rows / ppmm)
     off = ~np.isfinite(src_x) | ~np.isfinite(src_y)
+    # The legacy orientation (module docstring): print column j shows unrolled x = -x_j.
+    src_x, src_y, off = (np.ascontiguousarray(a[:, ::-1]) for a in (src_x, src_y, off))
     src_x[off] = -1e4
     src_y[off] = -1e4
     weight = cv2.remap(valid.astype(np.float32), src_x, src_y, cv2.INTER_LINEAR,
@@ -270,7 +284,8 @@ def rolled_print(
             "blurred; check focus, exposure and that the finger holds still")
     timings["total"] = (time.perf_counter() - t0) * 1e3
     return RolledPrint(
-        image=image, mask=inside, ppi=float(options.ppi), origin_mm=(c0 / ppmm, r0 / ppmm),
+        image=image, mask=inside, ppi=float(options.ppi),
+        origin_mm=(-float(cols[-1]) / ppmm, r0 / ppmm),
         source_x=src_x, source_y=src_y, area_mm2=area, strain_rms=unrolling.strain_rms,
         strain_max=unrolling.strain_max, coherence=coherence, unrolling=unrolling,
         timings_ms=timings)

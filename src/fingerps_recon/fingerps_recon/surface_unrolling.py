@@ -22,7 +22,8 @@ Steps (:func:`unroll_surface`):
    |P_i - P_j| (3D). Initial layout: x = signed 3D arc length along each mesh row from the
    apex column, y = the same along each mesh column from the apex row (the grid's own
    orientation: x right, y down as in the image, the skin seen from outside as the camera
-   sees it, so the print is not mirrored).
+   sees it; :func:`fingerps_recon.rolled_print.rolled_print` mirrors it left-right into
+   the legacy orientation of rolled prints).
 3. Relaxation: minimise sum_ij ((|x_i - x_j| - L_ij) / L_ij)^2 (relative strain, every
    spring weighted alike) by Levenberg-Marquardt with a sparse normal-equation solve
    (~600-800 nodes on the rig: 3 iterations of ~5 ms).

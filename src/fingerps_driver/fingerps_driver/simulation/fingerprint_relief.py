@@ -8,7 +8,8 @@ finite differences of the relief are smooth, not faceted as with a bilinear inte
 Outside the pattern's grid the value fades to 0 over ``fade_mm`` (a C1 smoothstep).
 
 Skin coordinates (``fingertip.FingertipShape.skin_coordinates``, metres from the apex, x
-around the finger, y along it towards the shaft) map to the pattern's rolled plane (mm, x
+around the finger towards the image's -x, so the camera sees the print mirrored, y along it
+towards the shaft) map to the pattern's rolled plane (mm, x
 right, y down, origin the grid's top-left corner) by ``rolled = apex_mm + 1000 * skin``:
 the apex sits at ``apex_mm``, by default on the grid's centre column 1.5 mm above its
 centre, near where ``fingerprint_orientation.draw_model`` puts the cores.

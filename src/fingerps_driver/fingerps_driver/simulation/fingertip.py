@@ -25,19 +25,27 @@ when given: the displacement is 0.5 * ``ridge_height_m`` * its value at the poin
 coordinates (``skin_coordinates``), so its ridges are raised towards the camera. Skin
 coordinates use the finger's symmetry: the cap is an ellipsoid of revolution and every
 cross-section of the shaft a circle of radius R about the (bent) finger axis, so a point is
-(theta, dY), its azimuth about the axis (theta = 0 facing the camera) and its position along
-it. Its skin x is rho(dY) * theta (arc length along the cross-section circle of radius rho;
-exactly R * theta on the shaft), its skin y the arc length along the meridian from the apex's
-cross-section (on the cap an incomplete elliptic integral of the second kind, on the bent
-shaft the arc length of the parabola). Both are exact distances along the coordinate lines;
+(theta, dY), its azimuth about the axis (theta = 0 facing the camera, + towards +x) and its
+position along it. Its skin x is -rho(dY) * theta (arc length along the cross-section
+circle of radius rho; exactly R * theta on the shaft; the sign: Mirroring, below), its skin
+y the arc length along the meridian from the apex's cross-section (on the cap an
+incomplete elliptic integral of the second kind, on the bent shaft the arc length of the
+parabola). Both are exact distances along the coordinate lines;
 the cap and the bent shaft are not developable, so no flat map keeps all distances (the
 coordinate lines meet at right angles on the cap, and within ~atan(slope_x * slope_y) of
 them on the shaft).
 
+Mirroring: skin x runs towards -x of the image, so the skin seen by the camera carries the
+pattern mirrored left-right. The pattern is the finger's rolled print (its ground truth),
+and a rolled or contact print is the mirror image of the skin seen from outside, like a
+stamp's print of its face; legacy prints, which matchers' galleries hold, are in that
+orientation. ``fingerps_recon.rolled_print`` mirrors the camera's view back, so the print
+it recovers equals the ground-truth print up to a small similarity transform, with no flip.
+
 Pose: ``roll_deg`` turns the finger about its own axis; the geometry is symmetric about it, so
 only the skin moves: theta -> theta - roll, exact on the cap and the shaft (a skin point at
 the apex moves to theta = roll, towards +x for roll > 0; on the shaft the skin x of a
-pixel's point drops by R * roll). ``yaw_deg`` turns the whole finger about the optical axis
+pixel's point rises by R * roll). ``yaw_deg`` turns the whole finger about the optical axis
 through the apex, from +x towards +y (clockwise as the image is displayed), exactly: (dx, dy)
 is rotated into the finger's frame and the gradient back. ``pitch_deg`` then turns it about
 the optical x axis through the apex, from +y towards +z (+ brings the tip, at -y, towards the
@@ -251,7 +259,8 @@ class FingertipShape:
         Returns
         -------
         x, y : ndarray float64
-            Arc length around the finger (rho * (theta - roll)) and along it from the apex.
+            Arc length around the finger, -rho * (theta - roll) (mirrored: towards -x as
+            the camera sees it, module docstring), and along it from the apex.
         """
         fx, fy = (dx, dy) if finger_frame else self._to_finger(dx, dy)
         theta, rho, ey = self._azimuth(fx, fy)
@@ -261,7 +270,7 @@ class FingertipShape:
         big_l = self.length_radius_m
         shaft = np.maximum(fy, 0.0) / big_l
         shaft_y = 0.5 * big_l * (shaft * np.sqrt(1.0 + shaft * shaft) + np.arcsinh(shaft))
-        return rho * theta, np.where(fy < 0.0, cap_y, shaft_y)
+        return -rho * theta, np.where(fy < 0.0, cap_y, shaft_y)
 
     def _rolled_whorl_coordinates(
         self, fx: np.ndarray, fy: np.ndarray

@@ -272,7 +272,8 @@ class FingerTruth:
         point seen by each pixel lies in the fingerprint's rolled plane, (x, y) mm, x right,
         y down, origin the pattern grid's top-left corner (as ``FingerprintPattern``'s
         minutiae and ``SimulatedRig.rolled_print``); NaN outside the mask. None for the
-        spiral.
+        spiral. The camera sees the print mirrored: rolled x falls as image x rises at
+        roll 0 (a print is the skin's mirror image, ``fingertip``'s module docstring).
     """
 
     normals_ps: np.ndarray
