@@ -172,6 +172,10 @@ def test_scan_with_a_finger_meets_the_accuracy_and_bad_goals_are_rejected(graph)
           f"residual {result.residual:.4f}")
     assert 0.0 < mae < MAE_LIMIT_DEG, mae
     assert result.normal_map.encoding == "rgb8" and result.points.width > 50_000
+    # the rolled-equivalent print of the best burst, 500 ppi: a fingertip is 10-30 mm
+    assert result.fingerprint.encoding == "mono8"
+    assert result.fingerprint.header.frame_id == "fingerps_rolled_print_500ppi"
+    assert 200 < result.fingerprint.width < 600 and 200 < result.fingerprint.height < 600
     assert 0.4 < result.finger_coverage < 0.7
     assert result.saturated_fraction < 0.02 and result.dark_fraction < 0.25
     assert result.motion_px < 0.5 and 0.0 < result.residual < 0.25
