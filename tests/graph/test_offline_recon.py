@@ -18,6 +18,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import struct
 import subprocess
 from collections.abc import Callable
 from pathlib import Path
@@ -139,6 +140,10 @@ def test_grey_8bit_sphere(offline_recon: Callable, tmp_path: Path) -> None:
     assert error < SPHERE_MAX_MEAN_DEG
     np.testing.assert_allclose(albedo[mask], 200.0, rtol=0.02)  # 200 grey levels per unit e
 
+    # No --pixel-size: no metric scale, so no 500 ppi print, and the report says why.
+    fingerprint = json.loads((out / "report.json").read_text())["fingerprint"]
+    assert not fingerprint["made"] and "--pixel-size" in fingerprint["reason"]
+    assert not (out / "fingerprint.png").exists()
     # Depth: the sphere's height in pixel units (no --pixel-size), zero mean over the mask.
     expected = height - height[mask].mean()
     assert np.abs(depth[mask] - expected[mask]).mean() < 0.2  # measured 0.053 px
@@ -274,6 +279,22 @@ def test_rig_finger_without_mask(offline_recon: Callable, tmp_path: Path,
     span = np.ptp(true_height[both])
     assert np.ptp(ours[both]) == pytest.approx(span, rel=0.05)  # measured 5.12 vs 5.21 mm
     assert np.sqrt(np.mean((ours[both] - true_height[both]) ** 2)) < 2e-4  # measured 82 um
+
+    # The 500 ppi rolled print, its resolution in the PNG's pHYs chunk (read byte by byte).
+    assert report["fingerprint"]["made"] and "fingerprint.png" in report["outputs"]
+    data = (out / "fingerprint.png").read_bytes()
+    chunks, at = {}, 8
+    while at < len(data):
+        length, kind = struct.unpack(">I4s", data[at:at + 8])
+        chunks.setdefault(kind, data[at + 8:at + 8 + length])
+        at += 12 + length
+    assert list(chunks)[:2] == [b"IHDR", b"pHYs"]
+    assert struct.unpack(">IIB", chunks[b"pHYs"]) == (19685, 19685, 1)  # 500 ppi, metres
+    print_image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert print_image.ndim == 2 and print_image.dtype == np.uint8
+    width_mm = print_image.shape[1] / 19.685
+    assert 10 < width_mm < 25, width_mm  # the rig's finger is ~15 mm across, ~18 mm rolled
+    assert "fingerprint.png: " in run.stdout
 
 
 def test_model_hk(offline_recon: Callable, tmp_path: Path,

@@ -26,6 +26,10 @@ Outputs in DIR:
 - ``depth.npy``  (H, W) float32 height along +z (towards the camera), zero mean over the
   mask, metres (pixel units without --pixel-size), NaN outside
 - ``normal_map.png``  RGB (n + 1) / 2 of the normals (the enhanced ones with --w/--k)
+- ``fingerprint.png``  the rolled-equivalent print (`fingerps_recon.rolled_print`): grey,
+  ridges dark on white, 500 ppi, with the resolution in the PNG's ``pHYs`` chunk
+  (19 685 pixels per metre); only with --pixel-size (it needs the metric scale), and only
+  when the reconstruction can be unrolled (else report.json says why)
 - ``cloud.ply``  one point a mask pixel in the camera optical frame (x right, y down, z away
   from the camera): x = (u - cx) s, y = (v - cy) s, z = -height, with albedo as
   ``intensity`` and the normals (optical frame)
@@ -64,7 +68,9 @@ from fingerps_recon.pipeline import (
     reconstruct,
 )
 from fingerps_recon.ply import write_ply
+from fingerps_recon.png_resolution import png_with_resolution
 from fingerps_recon.privacy import start_private_tool
+from fingerps_recon.rolled_print import RolledPrintError, rolled_print
 
 _DEFAULTS = ReconstructionOptions()
 _PROG = "offline_recon"
@@ -128,6 +134,10 @@ def run(args: argparse.Namespace) -> int:
     if not cv2.imwrite(str(out / "normal_map.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise OSError(f"{out / 'normal_map.png'}: OpenCV could not write it")
     _write_cloud(out / "cloud.ply", height, normals, albedo, mask, pixel_size=pixel_size)
+    fingerprint = _write_fingerprint(out / "fingerprint.png", height, normals, mask,
+                                     pixel_size=args.pixel_size)
+    if fingerprint["made"]:
+        written.append("fingerprint.png")
     t_write = time.perf_counter()
 
     report = {
@@ -148,6 +158,7 @@ def run(args: argparse.Namespace) -> int:
         "depth_unit": "m" if args.pixel_size is not None else "px",
         "enhancement": {"w": w, "k": k} if enhance else None,
         "normal_gt": _evaluate(data, normals, mask),
+        "fingerprint": fingerprint,
         "timings_ms": {
             "load": (t_load - t0) * 1e3,
             "reconstruct": (t_rec - t_load) * 1e3,
@@ -178,6 +189,32 @@ def _reconstruct(data: PhotometricDataset, *, model: Model, pixel_size: float,
     return reconstruct(data.images, lights_ps=data.lights_ps, camera_matrix=camera_matrix,
                        full_scale=data.full_scale, intensities=data.intensities,
                        mask=data.mask, options=options)
+
+
+ORTHOGRAPHIC_DISTANCE_M = 10.0
+"""Working distance of the pinhole camera that stands in for the orthographic one when the
+print is unrolled: at 10 m a 5 mm deep finger changes the scale by 0.05 %."""
+
+
+def _write_fingerprint(path: Path, height: np.ndarray, normals: np.ndarray, mask: np.ndarray,
+                       *, pixel_size: float | None) -> dict:
+    """Write the 500 ppi rolled print; return what report.json says of it."""
+    if pixel_size is None:
+        return {"made": False, "reason": "needs --pixel-size (metres per pixel): a 500 ppi "
+                "print needs the metric scale"}
+    h, w = mask.shape
+    focal = ORTHOGRAPHIC_DISTANCE_M / pixel_size
+    camera_matrix = np.array([[focal, 0.0, (w - 1) / 2.0], [0.0, focal, (h - 1) / 2.0],
+                              [0.0, 0.0, 1.0]])
+    depth = np.where(mask, ORTHOGRAPHIC_DISTANCE_M - height.astype(np.float64), np.nan)
+    try:
+        made = rolled_print(depth, mask=mask, camera_matrix=camera_matrix, normals_ps=normals)
+    except RolledPrintError as exc:
+        return {"made": False, "reason": str(exc)}
+    path.write_bytes(png_with_resolution(made.image, made.ppi))
+    return {"made": True, "ppi": made.ppi, "width_px": int(made.image.shape[1]),
+            "height_px": int(made.image.shape[0]), "area_mm2": made.area_mm2,
+            "strain_rms": made.strain_rms, "coherence": made.coherence}
 
 
 def _write_cloud(path: Path, height: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
@@ -233,6 +270,10 @@ def _summary(report: dict, out: Path) -> str:
             f"  angular error vs {gt['file']}: mean {gt['mean_deg']:.3f} deg, median "
             f"{gt['median_deg']:.3f} deg over {gt['pixels']} px "
             f"({gt['pixels_without_normal']} mask px without a normal)")
+    fp = report["fingerprint"]
+    lines.append(f"  fingerprint.png: {fp['width_px']}x{fp['height_px']} px at {fp['ppi']:g} ppi, "
+                 f"{fp['area_mm2']:.0f} mm2" if fp["made"] else
+                 f"  no fingerprint.png: {fp['reason']}")
     lines.append(f"  time: load {t['load']:.0f} ms, reconstruct {t['reconstruct']:.0f} ms, "
                  f"depth {t['depth']:.0f} ms, write {t['write']:.0f} ms")
     lines.append(f"  wrote {', '.join(report['outputs'])} to {out}")
