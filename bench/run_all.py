@@ -17,12 +17,13 @@ import bench_calib
 import bench_driver
 import bench_driver_publish
 import bench_e2e
+import bench_fingerprint
 import bench_recon_accuracy
 import bench_recon_publish
 import bench_recon_speed
 
 BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_publish,
-              bench_recon_accuracy, bench_calib, bench_e2e)
+              bench_recon_accuracy, bench_calib, bench_e2e, bench_fingerprint)
 
 
 def main(argv: list[str] | None = None) -> int:
