@@ -500,7 +500,8 @@ def _table(f: dict[str, float]) -> None:
                 "unrolling's share), so the rest is the reconstructed depth (the integrated "
                 "normals), flatter than the finger: its sag where the finger is tilted more "
                 f"than {MARGIN_TILT_DEG:.0f} deg is {f[p + 'margin_sag_ratio']:.3f} of the "
-                "true one, so its arcs are shorter")
+                "true one, so its arcs are shorter (and the normals are as flat there: "
+                "unrolling from their slopes instead of the depth gives the same scale)")
         for key in ("recall", "precision"):
             if f[p + key] < TARGETS[key]:
                 misses.append(
