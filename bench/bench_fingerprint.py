@@ -69,7 +69,12 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from check_fingerprint_pattern import compare_minutiae, nbis_extractor, png_bytes
+from check_fingerprint_pattern import (
+    compare_minutiae,
+    nbis_extractor,
+    png_bytes,
+    truth_keeps,
+)
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
@@ -213,17 +218,6 @@ def margin_sag_ratio(depth_m: np.ndarray, mask: np.ndarray, truth) -> float:
     return float(np.median(sag)) if steep.any() else float("nan")
 
 
-def truth_keeps(pattern: FingerprintPattern, xy_mm: np.ndarray) -> np.ndarray:
-    """(N,) bool: rolled-plane points (N, 2) where the generator keeps ground truth."""
-    inner = ndimage.distance_transform_edt(np.pad(pattern.mask, 1))[1:-1, 1:-1]
-    rows = np.clip((xy_mm[:, 1] / pattern.pixel_mm).astype(int), 0, pattern.mask.shape[0] - 1)
-    cols = np.clip((xy_mm[:, 0] / pattern.pixel_mm).astype(int), 0, pattern.mask.shape[1] - 1)
-    keep = inner[rows, cols] * pattern.pixel_mm > BORDER_MM
-    for sp in pattern.singular_points:
-        keep &= np.hypot(xy_mm[:, 0] - sp.x_mm, xy_mm[:, 1] - sp.y_mm) > SINGULAR_ZONE_MM
-    return keep
-
-
 def measure(result: RolledPrint, rolled_mm: np.ndarray, pattern: FingerprintPattern,
             template, out: PrintResult) -> None:
     """Geometric fidelity and minutiae of one print (module docstring) into ``out``."""
@@ -253,7 +247,8 @@ def measure(result: RolledPrint, rolled_mm: np.ndarray, pattern: FingerprintPatt
     det_known = known[det[:, 1], det[:, 0]]
     det = det[det_known]
     det_true = truth[det[:, 1], det[:, 0]].astype(np.float64)
-    det_in = inner[det[:, 1], det[:, 0]] & truth_keeps(pattern, det_true)
+    det_in = inner[det[:, 1], det[:, 0]] & truth_keeps(
+        pattern, det_true, border_mm=BORDER_MM, singular_zone_mm=SINGULAR_ZONE_MM)
     if len(det) and len(gt):
         d = np.hypot(gt[:, None, 0] - det_true[None, :, 0], gt[:, None, 1] - det_true[None, :, 1])
         found = d.min(axis=1) <= MATCH_MM

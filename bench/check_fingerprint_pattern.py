@@ -22,6 +22,7 @@ import time
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from fingerps_driver.simulation.fingerprint_pattern import (
     FingerprintPattern,
@@ -58,24 +59,33 @@ def moved(image: np.ndarray, *, shift_mm: tuple[float, float], angle_deg: float)
     return cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_LINEAR, borderValue=255)
 
 
+def truth_keeps(pattern: FingerprintPattern, xy_mm: np.ndarray, *,
+                border_mm: float = 1.0,
+                singular_zone_mm: float = 1.5) -> np.ndarray:
+    """(N,) bool: rolled-plane points (N, 2) where the generator keeps ground truth (more
+    than ``border_mm`` inside its mask, ``singular_zone_mm`` from its singular points)."""
+    inner = ndimage.distance_transform_edt(np.pad(pattern.mask, 1))[1:-1, 1:-1]
+    rows = np.clip((xy_mm[:, 1] / pattern.pixel_mm).astype(int), 0, pattern.mask.shape[0] - 1)
+    cols = np.clip((xy_mm[:, 0] / pattern.pixel_mm).astype(int), 0, pattern.mask.shape[1] - 1)
+    keep = inner[rows, cols] * pattern.pixel_mm > border_mm
+    for sp in pattern.singular_points:
+        keep &= np.hypot(xy_mm[:, 0] - sp.x_mm, xy_mm[:, 1] - sp.y_mm) > singular_zone_mm
+    return keep
+
+
 def compare_minutiae(
     pattern: FingerprintPattern, detected, *, border_mm: float = 1.0,
     singular_zone_mm: float = 1.5,
 ) -> dict[str, float]:
     """Recall, precision and median angle error (deg) of NBIS minutiae vs the ground truth."""
-    from scipy import ndimage
 
     truth = np.array([(m.x_mm, m.y_mm, m.angle_rad) for m in pattern.minutiae]).reshape(-1, 3)
     det = np.array(
         [((d.x() + 0.5) / PX_PER_MM, (d.y() + 0.5) / PX_PER_MM, np.deg2rad(d.angle()))
          for d in detected]
     ).reshape(-1, 3)
-    inner = ndimage.distance_transform_edt(np.pad(pattern.mask, 1))[1:-1, 1:-1]
-    rows = np.clip((det[:, 1] / pattern.pixel_mm).astype(int), 0, pattern.mask.shape[0] - 1)
-    cols = np.clip((det[:, 0] / pattern.pixel_mm).astype(int), 0, pattern.mask.shape[1] - 1)
-    evaluated = inner[rows, cols] * pattern.pixel_mm > border_mm
-    for sp in pattern.singular_points:
-        evaluated &= np.hypot(det[:, 0] - sp.x_mm, det[:, 1] - sp.y_mm) > singular_zone_mm
+    evaluated = truth_keeps(pattern, det[:, :2], border_mm=border_mm,
+                            singular_zone_mm=singular_zone_mm)
     d = np.hypot(truth[:, None, 0] - det[None, :, 0], truth[:, None, 1] - det[None, :, 1])
     if d.size == 0:
         return {"recall": 0.0, "precision": 0.0, "angle_deg": float("nan")}

@@ -1,6 +1,7 @@
 """Run every fingerps benchmark, print their tables, write bench/results.json.
 
-results.json is one flat JSON object of name -> number; each benchmark adds its names.
+results.json is one flat JSON object of name -> number; each benchmark adds its names
+(the ``soak.*`` figures of ``make soak`` are kept).
 Usage (after ``make build``, with tools/ros_env.sh sourced): ``python bench/run_all.py``.
 """
 
@@ -22,6 +23,9 @@ import bench_recon_accuracy
 import bench_recon_publish
 import bench_recon_speed
 
+SEPARATE_PREFIXES = ("soak.",)
+"""Figures of benchmarks not in ``make bench`` (``make soak``), kept when it rewrites the file."""
+
 BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_publish,
               bench_recon_accuracy, bench_calib, bench_e2e, bench_fingerprint)
 
@@ -38,8 +42,12 @@ def main(argv: list[str] | None = None) -> int:
         for name, value in figures.items():
             print(f"  {name:<{width}}  {value:12.3f}")
         results.update(figures)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
+    out = Path(args.out)
+    # Figures of benchmarks run on their own (make soak) are kept; every other is this run's.
+    kept = {k: v for k, v in (json.loads(out.read_text()) if out.is_file() else {}).items()
+            if k.startswith(SEPARATE_PREFIXES)}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({**kept, **results}, indent=2, sort_keys=True) + "\n")
     print(f"\nwrote {len(results)} figures to {args.out}")
     return 0
 
