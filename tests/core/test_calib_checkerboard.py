@@ -8,6 +8,7 @@ undistorted position), plus noise.
 
 from __future__ import annotations
 
+import stat
 import subprocess
 from pathlib import Path
 
@@ -148,6 +149,33 @@ def test_the_command_writes_a_camera_info_file(views, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([str(folder), "--pattern", "nine", "--square", "0.02"])
     assert exit_info.value.code == 2
+
+
+def test_the_command_writes_where_the_drivers_camera_info_url_looks(
+        views, tmp_path, capsys, monkeypatch):
+    folder = tmp_path / "boards"
+    folder.mkdir()
+    for index, view in enumerate(views[:8]):
+        cv2.imwrite(str(folder / f"board_{index:02d}.png"), view)
+    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
+    # '' = the driver's default, ${ROS_HOME}/camera_info/${NAME}.yaml, owner-only
+    assert main([str(folder), "--pattern", "9x6", "--square", "0.02", "--camera-name",
+                 "kiosk_cam", "--camera-info-url", ""]) == 0
+    out = tmp_path / "ros_home" / "camera_info" / "kiosk_cam.yaml"
+    assert f"wrote {out}" in capsys.readouterr().out
+    assert load_camera_info(out).camera_name == "kiosk_cam"
+    assert stat.S_IMODE(out.stat().st_mode) == 0o600
+    url = f"file://{tmp_path}/cal/${{NAME}}.yaml"
+    assert main([str(folder), "--pattern", "9x6", "--square", "0.02", "--camera-name",
+                 "c2", "--camera-info-url", url]) == 0
+    assert load_camera_info(tmp_path / "cal" / "c2.yaml").camera_name == "c2"
+    # A URL or a camera name the driver could not use: exit 2 before calibrating.
+    assert main([str(folder), "--pattern", "9x6", "--square", "0.02",
+                 "--camera-info-url", "http://x/c.yaml"]) == 2
+    assert "not a calibration URL" in capsys.readouterr().err
+    assert main([str(folder), "--pattern", "9x6", "--square", "0.02", "--camera-name",
+                 "kiosk-cam", "--camera-info-url", ""]) == 2
+    assert "letters, digits" in capsys.readouterr().err
 
 
 def test_the_command_is_installed():

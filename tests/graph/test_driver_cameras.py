@@ -121,6 +121,11 @@ def _run(*args: str) -> subprocess.CompletedProcess:
     (["-p", "camera:=folder"], "camera_folder"),
     (["-p", "camera_pixel_format:=mono16"], "sim.bit_depth"),
     (["-p", "camera_info_file:=/nonexistent/camera.yaml"], "/nonexistent/camera.yaml"),
+    (["-p", "camera_info_url:=http://host/c.yaml"], "is not a calibration URL"),
+    (["-p", "camera_info_url:=package://fingerps_nowhere/c.yaml"], "is not installed"),
+    (["-p", "camera_info_url:=file:///c.yaml", "-p", "camera_info_file:=/c.yaml"],
+     "not both"),
+    (["-p", "camera_name:=kiosk-cam"], "letters, digits and '_'"),
 ])
 def test_bad_camera_and_led_parameters_are_one_clear_line(ros_domain: int, args, expected):
     run = _run(*args)

@@ -5,7 +5,9 @@ Every PNG, JPEG, BMP or TIFF image in the folder is a view of a flat checkerboar
 side ``--square`` metres. Writes the intrinsics as a camera_info YAML (the format
 camera_calibration writes and camera_info_manager reads; calib_node's
 ``camera_info_file``, calibrate_lights' ``--camera-info``) to ``--out`` (default
-FOLDER/camera_info.yaml), and prints the reprojection error per image.
+FOLDER/camera_info.yaml) or where ``--camera-info-url`` points (driver_node's
+``camera_info_url``: the same resolution, the same atomic owner-only write as its
+``set_camera_info``), and prints the reprojection error per image.
 
 Exit status: 0 calibrated, 1 the calibration failed (too few boards found, reprojection
 error too large), 2 bad input.
@@ -20,7 +22,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fingerps_calib.camera_info_yaml import save_camera_info
+from fingerps_calib.camera_info_url import (
+    check_camera_name,
+    resolve_camera_info_url,
+    store_camera_info,
+)
 from fingerps_calib.checkerboard_calibration import calibrate_checkerboard
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_recon.privacy import start_private_tool
@@ -60,7 +66,13 @@ def parser() -> argparse.ArgumentParser:
                    help="inner corners COLSxROWS, e.g. 9x6 for 10 x 7 squares")
     p.add_argument("--square", type=_positive, required=True, help="square side, metres")
     p.add_argument("--camera-name", default="camera", help="name written into the file")
-    p.add_argument("--out", help="output file (default FOLDER/camera_info.yaml)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--out", help="output file (default FOLDER/camera_info.yaml)")
+    where.add_argument(
+        "--camera-info-url", metavar="URL",
+        help="write where driver_node's camera_info_url looks (camera_info_manager's rules: "
+             "file:///..., package://..., ${NAME}, ${ROS_HOME}); '' = "
+             "~/.ros/camera_info/<camera-name>.yaml, the driver's default")
     p.add_argument("--max-rms", type=_positive, default=1.0,
                    help="largest acceptable rms reprojection error, pixels (default 1)")
     return p
@@ -69,6 +81,11 @@ def parser() -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Calibrate and write the file; return the exit status."""
     folder = Path(args.folder)
+    if args.camera_info_url is not None:
+        out = resolve_camera_info_url(args.camera_info_url,
+                                      check_camera_name(args.camera_name))
+    else:
+        out = Path(args.out) if args.out else folder / "camera_info.yaml"
     if not folder.is_dir():
         raise FingerpsCalibError(f"{folder} is not a folder of checkerboard images")
     files = sorted(f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
@@ -91,8 +108,7 @@ def run(args: argparse.Namespace) -> int:
         for index, path in enumerate(files):
             print(f"  {index:3d} {path.name}", file=sys.stderr)
         return EXIT_FAILED
-    out = Path(args.out) if args.out else folder / "camera_info.yaml"
-    save_camera_info(out, result.intrinsics)
+    store_camera_info(out, result.intrinsics)
     for path, found, rms in zip(files, result.found, result.view_rms_px, strict=True):
         state = f"{rms:.3f} px" if found else "board not found"
         print(f"  {path.name:<32} {state}")

@@ -21,6 +21,7 @@ identity and a missing ``projection_matrix`` as ``[K | 0]`` (a monocular camera)
 from __future__ import annotations
 
 import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -261,9 +262,9 @@ def load_camera_info(path: str | os.PathLike[str]) -> CameraIntrinsics:
 def save_camera_info(path: str | os.PathLike[str], intrinsics: CameraIntrinsics) -> None:
     """Write ``intrinsics`` as a camera_info YAML file (the layout camera_calibration writes).
 
-    The file is written to a temporary name next to ``path`` and then renamed, so a crash
-    never leaves a half-written calibration. Numbers are written with full precision
-    (``repr``), so `load_camera_info` reads back exactly the same values.
+    The file is written owner-only (0600) to a temporary name next to ``path``, flushed to
+    disk and then renamed, so a crash never leaves a half-written calibration. Numbers are
+    written with full precision (``repr``), so `load_camera_info` reads back the same values.
 
     Parameters
     ----------
@@ -292,16 +293,38 @@ def save_camera_info(path: str | os.PathLike[str], intrinsics: CameraIntrinsics)
         + block("rectification_matrix", intrinsics.rectification)
         + block("projection_matrix", intrinsics.projection)
     )
-    tmp = path.with_name(path.name + ".tmp")
+    tmp: Path | None = None
     try:
-        tmp.write_text(text, encoding="utf-8")
+        # mkstemp: a name of this writer's own, created owner-only (0600) whatever the umask
+        handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        tmp = Path(name)
+        with os.fdopen(handle, "w", encoding="utf-8") as stream:
+            stream.write(text)
+            stream.flush()
+            os.fsync(stream.fileno())
         os.replace(tmp, path)
+        _sync_folder(path.parent)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
         raise FingerpsCalibError(
             f"cannot write camera info file {path}: {exc}; check that the directory exists "
             "and is writable"
         ) from exc
+
+
+def _sync_folder(folder: Path) -> None:
+    """Flush a rename in ``folder`` to disk (best effort: not every file system can)."""
+    try:
+        handle = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(handle)
+    except OSError:
+        pass
+    finally:
+        os.close(handle)
 
 
 def _frozen_array(value: object, shape: tuple[int, ...] | None, name: str) -> np.ndarray:

@@ -37,9 +37,15 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.srv import SetCameraInfo
 from std_msgs.msg import Header
 
-from fingerps_calib.camera_info_yaml import load_camera_info
+from fingerps_calib.camera_info_conversion import (
+    camera_info_to_intrinsics,
+    intrinsics_to_camera_info,
+)
+from fingerps_calib.camera_info_url import DEFAULT_CAMERA_INFO_URL
+from fingerps_calib.camera_info_yaml import CameraIntrinsics
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_driver.backoff import Backoff
 from fingerps_driver.board_emulator import BoardEmulator, BoardEmulatorControl
@@ -56,6 +62,7 @@ from fingerps_driver.burst_plan import (
 )
 from fingerps_driver.camera import Camera, CameraError, SimulatedCamera
 from fingerps_driver.camera_folder import FolderCamera
+from fingerps_driver.camera_info_manager import CameraInfoManager
 from fingerps_driver.camera_opencv import OpenCvCamera, parse_device
 from fingerps_driver.capture_rate import CaptureRate
 from fingerps_driver.errors import FingerpsDriverError
@@ -191,6 +198,7 @@ class DriverNode(Node):
         self._sim_steps = 1  # LED frames of that burst
         self._sim_moving_bursts = 0  # bursts that still move (sim.finger_motion_bursts)
         self._camera_info = CameraInfo()
+        self._camera_info_manager: CameraInfoManager | None = None
         self._board_state = BoardState.DISCONNECTED
         self._firmware = ""
         self._reconnect_timer = None
@@ -211,6 +219,8 @@ class DriverNode(Node):
         self._pub_burst = self.create_publisher(Burst, topics.BURST, qos.BURST_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self.create_service(CaptureBurst, topics.CAPTURE_BURST, self._on_capture)
+        # camera_info_manager's service name, where camera_calibration's calibrator commits
+        self.create_service(SetCameraInfo, "~/set_camera_info", self._on_set_camera_info)
         self.create_timer(1.0, self._on_diagnostics_timer)
         self._rate_timer = None
         self._apply_rate(self._param("rate"))
@@ -343,14 +353,20 @@ class DriverNode(Node):
             "v4l2: frames dropped after each LED switch before the one kept (a free-running "
             "camera's frame in progress mixes two lights)", min_value=0, max_value=10,
             integer=True, read_only=True))
+        p("camera_info_url", "", descriptor(
+            "Where the camera's calibration is loaded from and set_camera_info stores it "
+            "(camera_info_manager's rules): file:///path.yaml, package://pkg/path.yaml, "
+            "${NAME} and ${ROS_HOME} substituted; empty = "
+            f"{DEFAULT_CAMERA_INFO_URL}. Missing: the sim rig's true intrinsics, or none "
+            "(K = 0) for the other cameras", read_only=True))
         p("camera_info_file", "", descriptor(
-            "camera_info YAML (camera_calibration's format) published as CameraInfo; empty: "
-            "the sim rig's intrinsics, or none (K = 0) for the other cameras",
-            read_only=True))
+            "Older form of camera_info_url: a camera_info YAML path, which must exist and "
+            "fit the camera (else exit 2); empty = use camera_info_url", read_only=True))
         p("frame_id", "fingerps_camera_optical_frame", descriptor(
             "TF frame of the camera's optical frame (REP-103)", read_only=True))
-        p("camera_name", "fingerps_sim", descriptor("Camera name in CameraInfo/calibration",
-                                                    read_only=True))
+        p("camera_name", "fingerps_sim", descriptor(
+            "Camera name: ${NAME} of camera_info_url, written into the calibration file "
+            "(letters, digits, _)", read_only=True))
         # the simulated rig
         p("sim.scene", Scene.FINGER.value, descriptor(
             "What the simulated camera sees: finger, sphere, white_target or empty"))
@@ -563,39 +579,77 @@ class DriverNode(Node):
                                height=config.height, encoding=encoding)
 
     def _make_camera_info(self) -> CameraInfo:
+        """Load the calibration (camera_info_url or camera_info_file) and say what is used."""
         assert self._camera is not None
         width, height = self._camera.width, self._camera.height
-        info = CameraInfo(width=width, height=height)
-        path = str(self._param("camera_info_file"))
-        if path:
-            try:
-                intrinsics = load_camera_info(path)
-            except FingerpsCalibError as exc:
-                raise StartupError(str(exc)) from None
-            if (intrinsics.width, intrinsics.height) != (width, height):
-                raise StartupError(
-                    f"camera info file {path} is for {intrinsics.width}x{intrinsics.height} "
-                    f"images but the camera delivers {width}x{height}; calibrate at this "
-                    "resolution or set camera_width/camera_height")
-            info.distortion_model = intrinsics.distortion_model
-            info.d = [float(x) for x in intrinsics.distortion]
-            info.k = [float(x) for x in intrinsics.camera_matrix.ravel()]
-            info.r = [float(x) for x in intrinsics.rectification.ravel()]
-            info.p = [float(x) for x in intrinsics.projection.ravel()]
-            return info
-        if self._rig is None:
-            self.get_logger().warning(
-                "no camera_info_file: CameraInfo carries no intrinsics (K = 0, "
-                "uncalibrated); calibrate the camera and set camera_info_file")
-            return info
-        k = self._rig.camera_matrix
-        info.distortion_model = "plumb_bob"
-        info.d = [0.0] * 5
-        info.k = [float(x) for x in k.reshape(-1)]
-        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-        info.p = [float(k[0, 0]), 0.0, float(k[0, 2]), 0.0,
-                  0.0, float(k[1, 1]), float(k[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
-        return info
+        url, legacy = str(self._param("camera_info_url")), str(self._param("camera_info_file"))
+        if url and legacy:
+            raise StartupError("set camera_info_url or camera_info_file, not both")
+        fallback = None
+        if self._rig is not None:
+            fallback = CameraIntrinsics(width, height, self._rig.camera_matrix, "plumb_bob",
+                                        np.zeros(5), str(self._param("camera_name")))
+        try:
+            manager = CameraInfoManager(
+                camera_name=str(self._param("camera_name")),
+                url=f"file://{os.path.abspath(legacy)}" if legacy else url,
+                width=width, height=height, fallback=fallback,
+                fallback_source="the simulated rig's true intrinsics", strict=bool(legacy))
+            calibration = manager.load()
+        except FingerpsCalibError as exc:
+            raise StartupError(str(exc)) from None
+        self._camera_info_manager = manager
+        if calibration.problem is None:
+            self.get_logger().info(f"camera calibration: {calibration.source}")
+        elif calibration.intrinsics is not None and calibration.source == str(manager.path):
+            self.get_logger().warning(calibration.problem)
+        else:
+            log = self.get_logger().info if fallback is not None and not url else \
+                self.get_logger().warning
+            log(f"{calibration.problem}: publishing {calibration.source}; to calibrate run "
+                f"{self._how_to_calibrate()}")
+        return intrinsics_to_camera_info(calibration.intrinsics, width=width, height=height)
+
+    def _how_to_calibrate(self) -> str:
+        node = self.get_fully_qualified_name()
+        image = self.resolve_topic_name(topics.IMAGE_RAW)
+        return (f"`ros2 run camera_calibration cameracalibrator --size COLSxROWS --square "
+                f"METRES --ros-args -r image:={image} -r camera/set_camera_info:={node}/"
+                "set_camera_info` (it stores the "
+                "result through set_camera_info), or `ros2 run fingerps_calib calibrate_camera "
+                "FOLDER --pattern COLSxROWS --square METRES --camera-name "
+                f"{self._param('camera_name')} --camera-info-url "
+                f"'{self._param('camera_info_url')}'`")
+
+    def _on_set_camera_info(self, request: SetCameraInfo.Request,
+                            response: SetCameraInfo.Response) -> SetCameraInfo.Response:
+        """sensor_msgs/SetCameraInfo: validate, store to the URL's file, publish at once."""
+        manager = self._camera_info_manager
+        try:
+            if manager is None:
+                raise FingerpsCalibError("the camera is not open")
+            intrinsics = camera_info_to_intrinsics(request.camera_info,
+                                                   camera_name=manager.camera_name)
+            calibration = manager.store(intrinsics)
+        except FingerpsCalibError as exc:
+            response.success = False
+            response.status_message = f"calibration refused, nothing changed: {exc}"
+            self.get_logger().warning(f"set_camera_info: {response.status_message}")
+            return response
+        except Exception as exc:  # answered, never raised into the executor
+            response.success = False
+            response.status_message = f"calibration not stored ({type(exc).__name__}: {exc})"
+            self.get_logger().error(f"set_camera_info: {response.status_message}")
+            return response
+        self._camera_info = intrinsics_to_camera_info(
+            calibration.intrinsics, width=manager.width, height=manager.height)
+        info = self._stamped_camera_info(Header(stamp=self.get_clock().now().to_msg(),
+                                                frame_id=str(self._param("frame_id"))))
+        self._pub_info.publish(info)
+        response.success = True
+        response.status_message = f"stored in {calibration.source}"
+        self.get_logger().info(f"set_camera_info: calibration in force, {response.status_message}")
+        return response
 
     def _close_hardware(self) -> None:
         """LEDs off, then close the board, the camera and the emulator (each idempotent)."""
@@ -782,11 +836,7 @@ class DriverNode(Node):
                 self._pub_frames.publish(msg)
                 self._pub_image.publish(msg.image)
         last = tagged[-1].header
-        info = CameraInfo(header=last, width=self._camera_info.width,
-                          height=self._camera_info.height,
-                          distortion_model=self._camera_info.distortion_model,
-                          d=self._camera_info.d, k=self._camera_info.k,
-                          r=self._camera_info.r, p=self._camera_info.p)
+        info = self._stamped_camera_info(last)
         by_led = sorted(tagged, key=lambda f: f.led_index)  # Burst.msg: frames in LED order
         burst = Burst(header=last, burst_id=result.burst_id, frames=by_led, camera_info=info)
         if result.dark is not None:
@@ -803,6 +853,12 @@ class DriverNode(Node):
         return burst
 
     # ------------------------------------------------------------------ diagnostics
+    def _stamped_camera_info(self, header: Header) -> CameraInfo:
+        current = self._camera_info  # replaced whole by set_camera_info, never modified
+        return CameraInfo(header=header, width=current.width, height=current.height,
+                          distortion_model=current.distortion_model, d=current.d,
+                          k=current.k, r=current.r, p=current.p)
+
     def _on_diagnostics_timer(self) -> None:
         if self._port_vanished():
             assert self._board is not None
@@ -863,6 +919,8 @@ class DriverNode(Node):
             KeyValue(key="encoding", value=camera.encoding),
             KeyValue(key="frames", value=str(getattr(camera, "frames_grabbed", ""))),
             KeyValue(key="refused_settings", value=", ".join(refused)),
+            KeyValue(key="calibration", value=(self._camera_info_manager.current.source
+                                               if self._camera_info_manager else "")),
             KeyValue(key="last_camera_error", value=c.camera_error),
         ]
         return status
