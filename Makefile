@@ -10,7 +10,7 @@ STAMPS := .stamps
 ROS := source tools/ros_env.sh &&
 SRC_FILES := $(shell find src -type f \( -name '*.py' -o -name '*.xml' -o -name '*.txt' \
                -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.cfg' \
-               -o -name '*.yaml' \) -not -path '*/__pycache__/*')
+               -o -name '*.yaml' -o -name '*.json' -o -name '*.rviz' \) -not -path '*/__pycache__/*')
 
 .PHONY: setup build demo test bench soak lint clean
 .DEFAULT_GOAL := demo
