@@ -35,6 +35,7 @@ from std_msgs.msg import Header
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon import qos, topics
+from fingerps_recon.compressed_topics import CompressedTopics
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.frames import optical_to_ps, ps_to_optical
 from fingerps_recon.image_conversion import array_to_image, image_to_array, images_to_array
@@ -123,6 +124,12 @@ class ReconNode(Node):
         p("health_window", 5, descriptor(
             "Recent bursts /diagnostics judges: WARN while one of them failed, ERROR when "
             "all of them did", min_value=1, max_value=1000, integer=True, read_only=True))
+        # image_transport-style companions (normal_map/compressed, fingerprint/compressed,
+        # depth/compressedDepth): encoded only while subscribed (compressed_topics.py)
+        self._compressed = {
+            name: CompressedTopics(self, name, qos.OUTPUT_QOS, self._checks,
+                                   depth=name == topics.DEPTH)
+            for name in (topics.NORMAL_MAP, topics.FINGERPRINT, topics.DEPTH)}
 
         self._checks.refuse_unknown_overrides(self)
         set_thread_limit(int(self.get_parameter("threads").value))
@@ -382,8 +389,8 @@ class ReconNode(Node):
         self._pub_normals.publish(array_to_image(normals_optical, encoding="32FC3",
                                                  header=header))
         shown = result.enhanced_ps if result.enhanced_ps is not None else result.normals_ps
-        self._pub_map.publish(array_to_image(normal_map_rgb(shown, mask=result.mask),
-                                             encoding="rgb8", header=header))
+        rgb = normal_map_rgb(shown, mask=result.mask)
+        self._pub_map.publish(array_to_image(rgb, encoding="rgb8", header=header))
         self._pub_depth.publish(array_to_image(result.depth_m, encoding="32FC1", header=header))
         self._pub_albedo.publish(array_to_image(result.albedo, encoding="32FC1", header=header))
         self._pub_points.publish(points_to_cloud(result.points_optical, result.point_albedo,
@@ -391,6 +398,8 @@ class ReconNode(Node):
         if self.get_parameter("fingerprint").value and not self._publish_fingerprint(made,
                                                                                      burst):
             outcome = _WARN
+        self._compressed[topics.NORMAL_MAP].publish(rgb, "rgb8", header)  # after the raw ones
+        self._compressed[topics.DEPTH].publish(result.depth_m, "32FC1", header)
         stamp_ns = header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
         self._stages.add(stamp_ns, arrival_ns, start_ns, result.timings_ms["total"],
                          time.time_ns())
@@ -417,6 +426,7 @@ class ReconNode(Node):
         header = Header(stamp=burst.header.stamp, frame_id=topics.FINGERPRINT_FRAME)
         self._pub_print.publish(array_to_image(made_print.image, encoding="mono8",
                                                header=header))
+        self._compressed[topics.FINGERPRINT].publish(made_print.image, "mono8", header)
         self._prints_made += 1
         return True
 
@@ -467,6 +477,8 @@ class ReconNode(Node):
                              f"{float(np.median(self._print_ms)):.1f}" if self._print_ms
                              else "")),
                          KeyValue(key="bursts_dropped", value=str(self._dropped)),
+                         KeyValue(key="compressed_failures", value=str(
+                             sum(c.failures for c in self._compressed.values()))),
                          KeyValue(key="calibrated", value=str(self._lights is not None)),
                          KeyValue(key="calibrations_prepared",
                                   value=str(self._prepared.count)),
