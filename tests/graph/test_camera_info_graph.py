@@ -119,8 +119,9 @@ def test_an_explicit_url_that_is_missing_or_of_another_size_says_what_to_run(
     lines = [line for line in driver.output.splitlines()
              if f"no camera calibration at {tmp_path}/cal/kiosk_cam.yaml" in line]
     assert len(lines) == 1, driver.output
-    assert "WARN" in lines[0] and "cameracalibrator" in lines[0] \
-        and f"camera/set_camera_info:={SERVICE}" in lines[0] and f"image:={NS}/image_raw" in lines[0]
+    assert "WARN" in lines[0] and "cameracalibrator" in lines[0]
+    assert f"camera/set_camera_info:={SERVICE}" in lines[0]
+    assert f"image:={NS}/image_raw" in lines[0]
     # set_camera_info makes the folder and the file the URL names
     rig = SimulatedRig(RigConfig())
     client = ros_node.create_client(SetCameraInfo, SERVICE)

@@ -71,6 +71,7 @@ from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedR
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_recon import qos, topics
+from fingerps_recon.compressed_topics import CompressedTopics
 from fingerps_recon.image_conversion import array_to_image
 from fingerps_recon.node_runner import StartupError, run_node
 from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
@@ -180,6 +181,10 @@ class DriverNode(Node):
     def __init__(self) -> None:
         super().__init__("driver", namespace=topics.NAMESPACE)
         self._declare_parameters()
+        # image_raw/compressed as image_transport publishes it; off by default (7 PNGs a
+        # burst); encoded only while subscribed, after the burst is out
+        self._image_compressed = CompressedTopics(
+            self, topics.IMAGE_RAW, qos.SENSOR_QOS, self._checks, enabled_by_default=False)
         self._checks.refuse_unknown_overrides(self)
 
         self._lock = threading.Lock()
@@ -850,6 +855,8 @@ class DriverNode(Node):
             self._pub_burst.publish(burst)
             self._counters.last_publish_ms = (time.perf_counter() - start) * 1e3
             self._publish_ms.append(self._counters.last_publish_ms)
+            for msg, frame in zip(tagged, result.frames, strict=True):
+                self._image_compressed.publish(frame.image, msg.image.encoding, msg.header)
         return burst
 
     # ------------------------------------------------------------------ diagnostics
@@ -919,6 +926,7 @@ class DriverNode(Node):
             KeyValue(key="encoding", value=camera.encoding),
             KeyValue(key="frames", value=str(getattr(camera, "frames_grabbed", ""))),
             KeyValue(key="refused_settings", value=", ".join(refused)),
+            KeyValue(key="compressed_failures", value=str(self._image_compressed.failures)),
             KeyValue(key="calibration", value=(self._camera_info_manager.current.source
                                                if self._camera_info_manager else "")),
             KeyValue(key="last_camera_error", value=c.camera_error),
