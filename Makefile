@@ -33,7 +33,7 @@ $(STAMPS)/build: $(STAMPS)/venv $(SRC_FILES)
 	$(ROS) colcon --log-base log build --symlink-install \
 	    --event-handlers console_cohesion- status- summary+ \
 	    --cmake-args -DBUILD_TESTING=OFF
-	$(ROS) python -m fingerps_recon.kernel_warm_up
+	$(ROS) python -m fingerps_recon.photometric.kernel_warm_up
 	@touch $@
 
 demo: build

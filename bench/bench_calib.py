@@ -31,12 +31,12 @@ import time
 import numpy as np
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_calib.led_triangulation import Placement, combine_placements
-from fingerps_calib.sphere_calibration import calibrate_lights
+from fingerps_calib.lights.led_triangulation import Placement, combine_placements
+from fingerps_calib.lights.sphere_calibration import calibrate_lights
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_recon.angular_error import angular_error_deg
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.pipeline import reconstruct
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.pipeline import reconstruct
 
 #: Sphere centres (optical frame, metres); the whole 4 mm ball stays in view.
 POSITIONS = {

@@ -11,10 +11,10 @@ import time
 
 import numpy as np
 
-from fingerps_driver.board_emulator import BoardEmulator
-from fingerps_driver.burst import capture_burst
-from fingerps_driver.camera import SimulatedCamera
-from fingerps_driver.led_board import LedBoard
+from fingerps_driver.board.board_emulator import BoardEmulator
+from fingerps_driver.board.led_board import LedBoard
+from fingerps_driver.cameras.camera import SimulatedCamera
+from fingerps_driver.capture.burst import capture_burst
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 
 BURSTS = 30

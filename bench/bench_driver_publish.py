@@ -31,7 +31,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon import qos, topics
+from fingerps_ros import qos, topics
 
 BURSTS = 30
 WARM_UP = 2

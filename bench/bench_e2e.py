@@ -222,7 +222,7 @@ class Observer:
 
         from fingerps_msgs.msg import Burst
         from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
-        from fingerps_recon import qos, topics
+        from fingerps_ros import qos, topics
 
         self.seen = Seen()
         saved = {k: os.environ.get(k) for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE",

@@ -79,14 +79,14 @@ from check_fingerprint_pattern import (
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_driver.simulation.fingerprint_pattern import FingerprintPattern
-from fingerps_recon.pipeline import (
+from fingerps_recon.photometric.pipeline import (
     Model,
     PreparedCalibration,
     ReconstructionOptions,
     prepare_calibration,
     reconstruct_prepared,
 )
-from fingerps_recon.rolled_print import RolledPrint, RolledPrintError, rolled_print
+from fingerps_recon.surface.rolled_print import RolledPrint, RolledPrintError, rolled_print
 
 IDENTITIES = 20
 CAPTURES = 3

@@ -64,14 +64,14 @@ import numpy as np
 import scipy.ndimage
 
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
-from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.hk_solver import solve_hk
-from fingerps_recon.integration import height_to_distance, integrate_normals
-from fingerps_recon.lambertian import solve_lambertian
-from fingerps_recon.normal_transform import enhance_ridges
-from fingerps_recon.ridge_visibility import ridge_visibility
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.hk_solver import solve_hk
+from fingerps_recon.photometric.lambertian import solve_lambertian
+from fingerps_recon.photometric.normal_transform import enhance_ridges
+from fingerps_recon.photometric.ridge_visibility import ridge_visibility
+from fingerps_recon.surface.integration import height_to_distance, integrate_normals
 
 NOISES = (0.005, 0.01, 0.02)
 SETTINGS = ("distant", "distant_ff", "near")

@@ -3,7 +3,7 @@
 Usage (tools/ros_env.sh sourced): ``python bench/bench_recon_publish.py [--repeats N]``.
 
 One simulated 659x493 burst of 7 (``bench_recon_speed._burst``) is reconstructed once with
-``fingerps_recon.pipeline.reconstruct`` (model lambert, as ``pipeline(model)`` in
+``fingerps_recon.photometric.pipeline.reconstruct`` (model lambert, as ``pipeline(model)`` in
 bench_recon_speed); its result is then converted and published N times (default 21, at least
 15, after one warm-up round) as ``recon_node._reconstruct`` does, in its order:
 
@@ -85,7 +85,7 @@ def _subscribe() -> int:
     from sensor_msgs.msg import Image, PointCloud2
     from std_msgs.msg import UInt32
 
-    from fingerps_recon import qos, topics
+    from fingerps_ros import qos, topics
 
     rclpy.init()
     node = rclpy.create_node("bench_recon_publish_sink", namespace=topics.NAMESPACE)
@@ -127,7 +127,7 @@ def _result() -> object:
     from bench_recon_speed import _burst
 
     from fingerps_driver.simulation import RigConfig, SimulatedRig
-    from fingerps_recon.pipeline import Model, ReconstructionOptions, reconstruct
+    from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions, reconstruct
 
     rig = SimulatedRig(RigConfig())
     burst = _burst(rig)
@@ -140,10 +140,10 @@ def _result() -> object:
 
 def _conversions(result: object, header: object) -> dict[str, Callable[[], object]]:
     """Array -> message, per output, as recon_node._reconstruct does it."""
-    from fingerps_recon.frames import ps_to_optical
-    from fingerps_recon.image_conversion import array_to_image
-    from fingerps_recon.normal_map import normal_map_rgb
-    from fingerps_recon.point_cloud_conversion import points_to_cloud
+    from fingerps_recon.photometric.frames import ps_to_optical
+    from fingerps_recon.photometric.normal_map import normal_map_rgb
+    from fingerps_ros.image_conversion import array_to_image
+    from fingerps_ros.point_cloud_conversion import points_to_cloud
 
     r = result
     shown = r.enhanced_ps if r.enhanced_ps is not None else r.normals_ps
@@ -164,7 +164,7 @@ def _intake(result: object, repeats: int) -> list[float]:
     from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import Image
 
-    from fingerps_recon.image_conversion import array_to_image, images_to_array
+    from fingerps_ros.image_conversion import array_to_image, images_to_array
 
     rng = np.random.default_rng(7)
     h, w = result.mask.shape
@@ -224,8 +224,8 @@ def _publish_rounds(result: object, domain: int, repeats: int,
     from sensor_msgs.msg import Image, PointCloud2
     from std_msgs.msg import Header, UInt32
 
-    from fingerps_recon import qos, topics
-    from fingerps_recon.node_runner import use_large_data_profile
+    from fingerps_ros import qos, topics
+    from fingerps_ros.node_runner import use_large_data_profile
 
     use_large_data_profile()  # as every fingerps node does (the subscriber keeps the default)
     context = Context()

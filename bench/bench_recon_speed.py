@@ -5,7 +5,7 @@ Prints, for every stage, the median and the spread (interquartile range and min-
 N runs (default 15, at least 7) after one warm-up run, then the integration's accuracy
 against the simulated rig's true depth. ``run()`` returns the medians as
 ``recon.ms.<stage>`` (``recon.ms.lambert_total``, and ``recon.ms.hk_solve`` and
-``recon.ms.hk_total`` when ``fingerps_recon.hk_solver.solve_hk`` exists) and the accuracy
+``recon.ms.hk_total`` when ``photometric.hk_solver.solve_hk`` exists) and the accuracy
 figures as ``recon.um.<name>``.
 
 Stages, in the order of the Lambertian path (burst -> point cloud), all on the standard
@@ -21,10 +21,10 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
 - cloud: ``height_to_distance`` + ``depth_to_points``.
 - lambert_total: flat_field + mask + lambertian + transform + integration_fast + cloud run
   back to back; lambert_total_perspective: the same with the perspective integration.
-- pipeline_prepare: ``fingerps_recon.pipeline.prepare_calibration`` for the demo's
+- pipeline_prepare: ``fingerps_recon.photometric.pipeline.prepare_calibration`` for the demo's
   calibration (near lights from the LED positions, white-target irradiance, perspective
   views), its caches emptied: what recon_node does once per calibration and camera.
-- pipeline_lambert / pipeline_hk: ``fingerps_recon.pipeline.reconstruct_prepared`` with that
+- pipeline_lambert / pipeline_hk: ``photometric.pipeline.reconstruct_prepared`` with that
   prepared calibration, as recon_node runs it per burst (perspective integration, ridge
   transform, points). The figures issue 10's targets are about (Lambertian <= 25 ms, HK
   <= 80 ms); ``recon.ms.lambert_total`` / ``recon.ms.hk_total`` are hand-chained stages.
@@ -65,23 +65,23 @@ import numpy as np
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_recon.finger_mask import finger_mask
-from fingerps_recon.flat_field import apply_flat_field
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.integration import (
+from fingerps_recon.photometric.finger_mask import finger_mask
+from fingerps_recon.photometric.flat_field import apply_flat_field
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.lambertian import solve_lambertian
+from fingerps_recon.photometric.normal_transform import enhance_ridges
+from fingerps_recon.surface.integration import (
     IntegrationMethod,
     depth_to_points,
     height_to_distance,
     integrate_normals,
     integrate_normals_perspective,
 )
-from fingerps_recon.lambertian import solve_lambertian
-from fingerps_recon.normal_transform import enhance_ridges
 
 RUNS = 15
 MIN_RUNS = 7
 KERNEL_ITERATIONS = 10
-# Floating-point operations of one HK LM iteration, counted in fingerps_recon/hk_kernel.py
+# Floating-point operations of one HK LM iteration, counted in photometric/hk_kernel.py
 # (add, mul, fma = 2, div, sqrt, min/max each 1; loads, stores, selects not counted): per
 # measurement (pixel x light) in _model_sums: c_i 5, lighting selects 2, 1/c_i 1, q 2, the
 # exponent 2 and exp() 14, e p S 3, e c_i 1, A P 1, u 2, r 3, w_q 3, capped inverses 2,
@@ -173,7 +173,7 @@ def _burst(rig: SimulatedRig) -> _Burst:
                   camera_matrix=np.asarray(rig.camera_matrix), full_scale=rig.max_value())
 
 
-from fingerps_recon.pipeline import (  # noqa: E402
+from fingerps_recon.photometric.pipeline import (  # noqa: E402
     Model,
     ReconstructionOptions,
     prepare_calibration,
@@ -224,7 +224,7 @@ def _time(fn: Callable[[], object], repeats: int) -> tuple[object, tuple[float, 
 def _uncached_prepare(prepare: Callable[[Model], object], model: Model) -> object:
     """``prepare(model)`` with pixel_rays' caches of directions emptied first (as for a new
     calibration or camera)."""
-    from fingerps_recon import pixel_rays
+    from fingerps_recon.photometric import pixel_rays
 
     pixel_rays._cached_lights.cache_clear()
     pixel_rays._cached_views.cache_clear()
@@ -233,7 +233,7 @@ def _uncached_prepare(prepare: Callable[[Model], object], model: Model) -> objec
 
 def _solve_hk() -> Callable | None:
     try:
-        module = importlib.import_module("fingerps_recon.hk_solver")
+        module = importlib.import_module("fingerps_recon.photometric.hk_solver")
     except ImportError:
         return None
     return getattr(module, "solve_hk", None)
@@ -307,7 +307,8 @@ def measure(repeats: int = RUNS) -> SpeedReport:
 
     solve_hk = _solve_hk()
     if solve_hk is None:
-        notes.append("hk_solve, hk_total: skipped, fingerps_recon.hk_solver.solve_hk not found")
+        notes.append("hk_solve, hk_total: skipped, "
+                     "fingerps_recon.photometric.hk_solver.solve_hk not found")
     else:
         usable = (stack > shadow_level) & (stack < saturation_level)
 

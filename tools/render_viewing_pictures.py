@@ -44,17 +44,17 @@ import numpy as np
 import yaml
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_driver.board_emulator import FIRMWARE
+from fingerps_driver.board.board_emulator import FIRMWARE
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_recon.normal_map import normal_map_rgb
-from fingerps_recon.pipeline import (
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.photometric.pipeline import (
     Model,
     ReconstructionOptions,
     prepare_calibration,
     reconstruct_prepared,
 )
-from fingerps_recon.privacy import start_private_tool
-from fingerps_recon.rolled_print import rolled_print
+from fingerps_recon.surface.rolled_print import rolled_print
+from fingerps_ros.privacy import start_private_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "src" / "fingerps_recon" / "config"

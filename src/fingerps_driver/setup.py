@@ -26,7 +26,7 @@ setup(
     entry_points={
         "console_scripts": [
             'driver_node = fingerps_driver.driver_node:main',
-            'board_emulator = fingerps_driver.board_emulator:main',
+            'board_emulator = fingerps_driver.board.board_emulator:main',
             'demo = fingerps_driver.demo:main',
             'bringup = fingerps_driver.bringup:main',
         ],

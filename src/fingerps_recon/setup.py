@@ -28,11 +28,11 @@ setup(
         "console_scripts": [
             'recon_node = fingerps_recon.recon_node:main',
             'scan_node = fingerps_recon.scan_node:main',
-            'offline_recon = fingerps_recon.offline_recon:main',
+            'offline_recon = fingerps_recon.offline.offline_recon:main',
             'recorder_node = fingerps_recon.recorder_node:main',
-            'bag_recover = fingerps_recon.bag_recover:main',
-            'bag_replay = fingerps_recon.bag_replay:main',
-            'offline_tune = fingerps_recon.offline_tune:main',
+            'bag_recover = fingerps_recon.sessions.bag_recover:main',
+            'bag_replay = fingerps_recon.sessions.bag_replay:main',
+            'offline_tune = fingerps_recon.offline.offline_tune:main',
         ],
     },
 )

@@ -1,16 +1,16 @@
-"""Tests of fingerps_recon.angular_error."""
+"""Tests of fingerps_recon.photometric.angular_error."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fingerps_recon.angular_error import (
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.photometric.angular_error import (
     AngularErrorSummary,
     angular_error_deg,
     summarize_angular_error,
 )
-from fingerps_recon.errors import FingerpsReconError
 
 
 def test_known_angles_tiny_and_opposite() -> None:

@@ -13,8 +13,8 @@ import pytest
 from rclpy.serialization import serialize_message
 
 from fingerps_msgs.msg import Burst
-from fingerps_recon.offline_tune import main
-from fingerps_recon.session_bag import SessionBagWriter
+from fingerps_recon.offline.offline_tune import main
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 
 SIZE = (72, 88)
 LIGHTS = 8
@@ -106,7 +106,7 @@ def test_the_sweep_runs_after_this_process_used_the_parallel_kernels(
         folder: Path, tmp_path: Path) -> None:
     # numba's worker threads, once started here, do not survive a fork(): the sweep's worker
     # processes must be fresh interpreters (before: BrokenProcessPool).
-    from fingerps_recon.kernel_warm_up import warm_up_kernels
+    from fingerps_recon.photometric.kernel_warm_up import warm_up_kernels
 
     warm_up_kernels()  # every parallel kernel has run in this process now
     out = tmp_path / "tune"

@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.bag_reader on bags written in tmp_path, intact and damaged."""
+"""Tests of fingerps_recon.sessions.bag_reader on bags written in tmp_path, intact and damaged."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from mcap.reader import make_reader
 from rclpy.serialization import serialize_message
 
 from fingerps_msgs.msg import Burst, LightCalibration
-from fingerps_recon.bag_reader import BagSchemaError, SessionBagReader
-from fingerps_recon.mcap_records import McapDamageError
-from fingerps_recon.message_definition import MessageDefinition, load_message_definition
-from fingerps_recon.session_bag import SessionBagWriter
+from fingerps_recon.sessions.bag_reader import BagSchemaError, SessionBagReader
+from fingerps_recon.sessions.mcap_records import McapDamageError
+from fingerps_recon.sessions.message_definition import MessageDefinition, load_message_definition
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 
 T0 = 1_700_000_000_000_000_000
 BURST = "/fingerps/burst"

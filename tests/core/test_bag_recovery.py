@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.mcap_records and fingerps_recon.bag_recovery on files written in
+"""Tests of sessions.mcap_records and sessions.bag_recovery on files written in
 tmp_path: finished, cut mid-chunk, corrupted mid-file, cut at a chunk boundary (a kill), and
 damaged bags with known contents (flipped bytes, corrupted opcodes and lengths, cuts, lost
 summaries, a seeded sweep): every message of an intact chunk is kept, the rest reported."""
@@ -22,10 +22,10 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
-from fingerps_recon.bag_recover import main as bag_recover_main
-from fingerps_recon.bag_recovery import BagRecoveryError, recover_bag
-from fingerps_recon.mcap_records import McapDamageError, scan_records
-from fingerps_recon.session_bag import SessionBagWriter
+from fingerps_recon.sessions.bag_recover import main as bag_recover_main
+from fingerps_recon.sessions.bag_recovery import BagRecoveryError, recover_bag
+from fingerps_recon.sessions.mcap_records import McapDamageError, scan_records
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 
 T0 = 1_700_000_000_000_000_000
 BURST = "/fingerps/burst"

@@ -2,7 +2,7 @@
 
 import pytest
 
-from fingerps_driver.board_protocol import (
+from fingerps_driver.board.board_protocol import (
     MAX_LINE_BYTES,
     REPLY_SIGIL,
     REQUEST_SIGIL,

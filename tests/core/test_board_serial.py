@@ -10,9 +10,9 @@ import time
 
 import pytest
 
-from fingerps_driver.board_emulator import BoardEmulator, BoardEmulatorError, Fault
-from fingerps_driver.board_protocol import ErrorCode
-from fingerps_driver.led_board import (
+from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorError, Fault
+from fingerps_driver.board.board_protocol import ErrorCode
+from fingerps_driver.board.led_board import (
     BoardDisconnectedError,
     BoardError,
     BoardInfo,
@@ -214,7 +214,7 @@ def test_console_script_serves_until_sigterm(tmp_path):
     link = tmp_path / "cli_board"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     process = subprocess.Popen(
-        [sys.executable, "-m", "fingerps_driver.board_emulator", "--link", str(link)],
+        [sys.executable, "-m", "fingerps_driver.board.board_emulator", "--link", str(link)],
         stdout=subprocess.PIPE, text=True, env=env,
     )
     try:

@@ -6,10 +6,10 @@ import time
 import numpy as np
 import pytest
 
-from fingerps_driver.board_emulator import BoardEmulator, Fault
-from fingerps_driver.burst import DARK_LED, BurstResult, capture_burst
-from fingerps_driver.camera import Camera, CameraError, SimulatedCamera
-from fingerps_driver.led_board import LedBoard
+from fingerps_driver.board.board_emulator import BoardEmulator, Fault
+from fingerps_driver.board.led_board import LedBoard
+from fingerps_driver.cameras.camera import Camera, CameraError, SimulatedCamera
+from fingerps_driver.capture.burst import DARK_LED, BurstResult, capture_burst
 
 H, W = 6, 8
 LEDS = tuple(range(7))

@@ -7,8 +7,8 @@ import pytest
 import scipy.ndimage
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_recon.burst_motion import estimate_motion
 from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.scan.burst_motion import estimate_motion
 
 
 @pytest.mark.parametrize("shape", [(493, 659), (480, 640), (101, 97)])

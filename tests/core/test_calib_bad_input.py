@@ -1,5 +1,5 @@
 """Bad input to the calibration cores: each case is refused with a message saying what is
-wrong and what to do (fingerps_calib.sphere_calibration, flat_field_calibration), and the
+wrong and what to do (fingerps_calib.lights.sphere_calibration, flat_field_calibration), and the
 checks a calibration passes before calib_node puts it in force (calibration_store).
 
 Images from the simulated rig (fingerps_driver.simulation), altered where the rig has no
@@ -14,7 +14,7 @@ import pytest
 from fingerps_calib.calibration_store import flat_field_problems, lights_problems
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_calib.sphere_calibration import RADIUS_RANGE_M, calibrate_lights
+from fingerps_calib.lights.sphere_calibration import RADIUS_RANGE_M, calibrate_lights
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 
 RADIUS = 4e-3

@@ -1,4 +1,4 @@
-"""Tests of fingerps_calib.checkerboard_calibration and the calibrate_camera command.
+"""Tests of fingerps_calib.intrinsics.checkerboard_calibration and the calibrate_camera command.
 
 Synthetic views: a checkerboard texture is projected through a known camera with
 cv2.warpPerspective (the homography K [r1 r2 t] of the board plane, rendered at 3x and
@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 from fingerps_calib.calibrate_camera_command import main
-from fingerps_calib.camera_info_yaml import load_camera_info
-from fingerps_calib.checkerboard_calibration import (
+from fingerps_calib.errors import FingerpsCalibError
+from fingerps_calib.intrinsics.camera_info_yaml import load_camera_info
+from fingerps_calib.intrinsics.checkerboard_calibration import (
     board_points,
     calibrate_checkerboard,
     find_checkerboard,
 )
-from fingerps_calib.errors import FingerpsCalibError
 
 W, H = 640, 480
 K = np.array([[820.0, 0.0, 322.5], [0.0, 818.0, 236.0], [0.0, 0.0, 1.0]])

@@ -16,9 +16,9 @@ import pytest
 import yaml
 
 from fingerps_calib.calibrate_lights_command import main
-from fingerps_calib.camera_info_yaml import CameraIntrinsics, save_camera_info
+from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, save_camera_info
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_recon.frames import optical_to_ps
+from fingerps_recon.photometric.frames import optical_to_ps
 
 REPO = Path(__file__).resolve().parents[2]
 

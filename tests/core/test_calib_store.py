@@ -18,7 +18,7 @@ from fingerps_calib.calibration_store import (
     save_lights,
 )
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.led_triangulation import Placement, combine_placements
+from fingerps_calib.lights.led_triangulation import Placement, combine_placements
 
 K = np.array([[3000.0, 0.0, 329.0], [0.0, 3000.0, 246.0], [0.0, 0.0, 1.0]])
 LEDS = np.array([[0.040, 0.005, 0.001], [-0.020, 0.035, -0.002], [-0.030, -0.028, 0.0015]])

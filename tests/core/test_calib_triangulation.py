@@ -1,4 +1,4 @@
-"""Tests of fingerps_calib.led_triangulation: LED positions from several sphere placements.
+"""Tests of fingerps_calib.lights.led_triangulation: LED positions from several sphere placements.
 
 Analytic cases build the placements' rays directly (origins anywhere, directions towards a
 known LED); the simulated case calibrates two real placements of the rig's sphere and
@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.led_triangulation import (
+from fingerps_calib.lights.led_triangulation import (
     Placement,
     combine_placements,
     triangulate_leds,
     triangulate_point,
 )
-from fingerps_calib.sphere_calibration import calibrate_lights
+from fingerps_calib.lights.sphere_calibration import calibrate_lights
 from fingerps_driver import simulation
 
 LEDS = np.array([[0.040, 0.005, 0.001], [-0.020, 0.035, -0.002], [-0.030, -0.028, 0.0015]])

@@ -7,11 +7,11 @@ import cv2
 import numpy as np
 import pytest
 
-from fingerps_driver.board_emulator import BoardEmulator
-from fingerps_driver.burst import capture_burst
-from fingerps_driver.camera import Camera, CameraError
-from fingerps_driver.camera_folder import FolderCamera
-from fingerps_driver.led_board import LedBoard
+from fingerps_driver.board.board_emulator import BoardEmulator
+from fingerps_driver.board.led_board import LedBoard
+from fingerps_driver.cameras.camera import Camera, CameraError
+from fingerps_driver.cameras.camera_folder import FolderCamera
+from fingerps_driver.capture.burst import capture_burst
 
 H, W = 6, 8
 

@@ -12,18 +12,18 @@ import pytest
 from ament_index_python.packages import get_package_share_directory
 from sensor_msgs.msg import CameraInfo
 
-from fingerps_calib.camera_info_conversion import (
+from fingerps_calib.errors import FingerpsCalibError
+from fingerps_calib.intrinsics.camera_info_conversion import (
     camera_info_to_intrinsics,
     intrinsics_to_camera_info,
 )
-from fingerps_calib.camera_info_url import (
+from fingerps_calib.intrinsics.camera_info_url import (
     check_camera_name,
     resolve_camera_info_url,
     store_camera_info,
 )
-from fingerps_calib.camera_info_yaml import CameraIntrinsics, load_camera_info
-from fingerps_calib.errors import FingerpsCalibError
-from fingerps_driver.camera_info_manager import CameraInfoManager
+from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, load_camera_info
+from fingerps_driver.cameras.camera_info_manager import CameraInfoManager
 
 W, H = 64, 48
 K = np.array([[100.0, 0.0, 31.5], [0.0, 101.0, 23.5], [0.0, 0.0, 1.0]])

@@ -1,12 +1,16 @@
-"""Tests of fingerps_calib.camera_info_yaml: round trip and error cases."""
+"""Tests of fingerps_calib.intrinsics.camera_info_yaml: round trip and error cases."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fingerps_calib.camera_info_yaml import CameraIntrinsics, load_camera_info, save_camera_info
 from fingerps_calib.errors import FingerpsCalibError
+from fingerps_calib.intrinsics.camera_info_yaml import (
+    CameraIntrinsics,
+    load_camera_info,
+    save_camera_info,
+)
 
 # As camera_calibration writes it (ost.yaml), with numbers of a 659x493 camera.
 ROS_TEXT = """\

@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 import pytest
 
-from fingerps_driver.board_emulator import BoardEmulator
-from fingerps_driver.burst import capture_burst
-from fingerps_driver.camera import Camera, CameraError, ExposureControl, to_mono
-from fingerps_driver.camera_opencv import OpenCvCamera, parse_device
-from fingerps_driver.led_board import LedBoard
+from fingerps_driver.board.board_emulator import BoardEmulator
+from fingerps_driver.board.led_board import LedBoard
+from fingerps_driver.cameras.camera import Camera, CameraError, ExposureControl, to_mono
+from fingerps_driver.cameras.camera_opencv import OpenCvCamera, parse_device
+from fingerps_driver.capture.burst import capture_burst
 
 H, W = 6, 8
 

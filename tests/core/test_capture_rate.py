@@ -1,10 +1,10 @@
-"""fingerps_driver.capture_rate: whether continuous capture keeps the rate asked for."""
+"""fingerps_driver.capture.capture_rate: whether continuous capture keeps the rate asked for."""
 
 from __future__ import annotations
 
 import pytest
 
-from fingerps_driver.capture_rate import CaptureRate
+from fingerps_driver.capture.capture_rate import CaptureRate
 
 
 def _run(rate: float, period: float, seconds: float) -> CaptureRate:

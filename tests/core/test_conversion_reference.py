@@ -17,11 +17,11 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.frames import optical_to_ps, ps_to_optical
-from fingerps_recon.image_conversion import array_to_image, image_to_array, images_to_array
-from fingerps_recon.normal_map import normal_map_rgb
-from fingerps_recon.point_cloud_conversion import cloud_to_points, points_to_cloud
+from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_ros.errors import MessageError
+from fingerps_ros.image_conversion import array_to_image, image_to_array, images_to_array
+from fingerps_ros.point_cloud_conversion import cloud_to_points, points_to_cloud
 
 H, W = 37, 53  # odd sizes: rows of no power-of-two length
 
@@ -225,16 +225,16 @@ def test_images_to_array_is_the_stack_of_image_to_array(encoding: str) -> None:
 
 def test_images_to_array_refuses_what_cannot_be_stacked() -> None:
     small = array_to_image(np.zeros((2, 3), np.uint8), encoding="mono8")
-    with pytest.raises(FingerpsReconError, match="at least one"):
+    with pytest.raises(MessageError, match="at least one"):
         images_to_array([])
-    with pytest.raises(FingerpsReconError, match="different encodings or sizes"):
+    with pytest.raises(MessageError, match="different encodings or sizes"):
         images_to_array([small, array_to_image(np.zeros((2, 4), np.uint8),
                                                encoding="mono8")])
-    with pytest.raises(FingerpsReconError, match="different encodings or sizes"):
+    with pytest.raises(MessageError, match="different encodings or sizes"):
         images_to_array([small, array_to_image(np.zeros((2, 3), np.uint16),
                                                encoding="mono16")])
     short = Image(height=2, width=3, encoding="mono8", step=3, data=bytes(5))
-    with pytest.raises(FingerpsReconError, match="too few"):
+    with pytest.raises(MessageError, match="too few"):
         images_to_array([small, short])
 
 

@@ -1,4 +1,4 @@
-"""Reading DiLiGenT-layout folders (`fingerps_recon.diligent_folder`) written in tmp_path.
+"""Reading DiLiGenT-layout folders (`fingerps_recon.offline.diligent_folder`) written in tmp_path.
 
 Small synthetic folders with known pixel values: the grey conversion rules (the inverse-
 intensity mean for three-channel intensities, Rec. 601 luma otherwise), the RGB channel order
@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 import scipy.io
 
-from fingerps_recon.diligent_folder import (
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.offline.diligent_folder import (
     LUMA_601,
     ColourConversion,
     default_shadow_level,
     load_diligent_folder,
 )
-from fingerps_recon.errors import FingerpsReconError
 
 H, W = 6, 8
 LIGHTS = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8]])

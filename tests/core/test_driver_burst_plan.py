@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from fingerps_driver.backoff import Backoff
-from fingerps_driver.burst_plan import (
+from fingerps_driver.board.backoff import Backoff
+from fingerps_driver.capture.burst_plan import (
     BurstPlan,
     check_exposures,
     check_led_order,

@@ -15,16 +15,16 @@ import time
 import numpy as np
 import pytest
 
-from fingerps_driver.board_emulator import (
+from fingerps_driver.board.board_emulator import (
     BoardEmulator,
     BoardEmulatorControl,
     BoardEmulatorError,
     EmulatorControlServer,
     Fault,
 )
-from fingerps_driver.burst import capture_burst
-from fingerps_driver.camera import CameraError, SimulatedCamera
-from fingerps_driver.led_board import BoardDisconnectedError, BoardNotFoundError, LedBoard
+from fingerps_driver.board.led_board import BoardDisconnectedError, BoardNotFoundError, LedBoard
+from fingerps_driver.cameras.camera import CameraError, SimulatedCamera
+from fingerps_driver.capture.burst import capture_burst
 
 LEDS = tuple(range(7))
 
@@ -194,7 +194,7 @@ def test_console_script_serves_the_control_channel(tmp_path):
     link, path = tmp_path / "board", tmp_path / "control"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     process = subprocess.Popen(
-        [sys.executable, "-m", "fingerps_driver.board_emulator", "--link", str(link),
+        [sys.executable, "-m", "fingerps_driver.board.board_emulator", "--link", str(link),
          "--control", str(path)], stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert f"control {path}" in process.stdout.readline()

@@ -7,7 +7,7 @@ import pytest
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.finger_presence import detect_finger
+from fingerps_recon.scan.finger_presence import detect_finger
 
 
 def test_a_bright_disc_is_found_with_its_box_and_coverage() -> None:

@@ -20,13 +20,13 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_recon.pipeline import (
+from fingerps_recon.photometric.pipeline import (
     Model,
     ReconstructionOptions,
     prepare_calibration,
     reconstruct_prepared,
 )
-from fingerps_recon.rolled_print import RolledPrint, rolled_print
+from fingerps_recon.surface.rolled_print import RolledPrint, rolled_print
 
 IDENTITIES = (4, 7)
 #: (roll, yaw, pitch) deg and the apex shift (x, y) mm of the two captures.

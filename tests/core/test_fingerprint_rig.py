@@ -9,7 +9,7 @@ from scipy import ndimage
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_driver.simulation.fingertip import trace_fingertip
-from fingerps_recon.frames import ps_to_optical
+from fingerps_recon.photometric.frames import ps_to_optical
 
 IDENTITY = 3
 

@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.flat_field (paper Eq. 11)."""
+"""Tests of fingerps_recon.photometric.flat_field (paper Eq. 11)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.flat_field import apply_flat_field
+from fingerps_recon.photometric.flat_field import apply_flat_field
 
 K, H, W = 3, 12, 16
 

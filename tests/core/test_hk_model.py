@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.hk_model on analytic cases."""
+"""Tests of fingerps_recon.photometric.hk_model on analytic cases."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from scipy import integrate
 
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.hk_model import (
+from fingerps_recon.photometric.hk_model import (
     FINGER,
     PLASTICINE,
     PhaseConvention,

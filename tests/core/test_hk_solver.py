@@ -1,7 +1,7 @@
-"""Tests of fingerps_recon.hk_solver on rendered HK and Lambertian scenes.
+"""Tests of fingerps_recon.photometric.hk_solver on rendered HK and Lambertian scenes.
 
 The solver's tests run with both backends (``backend`` fixture): "numpy", the reference, and
-"numba", the compiled passes of fingerps_recon.hk_kernel (skipped where numba is not
+"numba", the compiled passes of fingerps_recon.photometric.hk_kernel (skipped where numba is not
 installed). The first numba test of a session compiles the kernels or loads them from
 numba's on-disk cache.
 """
@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from fingerps_recon import hk_solver, kernel_threads
-from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.hk_model import PhaseConvention, SkinParams, hk_reflectance
-from fingerps_recon.hk_solver import HKResult, solve_hk
-from fingerps_recon.lambertian import lambertian_shading, solve_lambertian
+from fingerps_recon.photometric import hk_solver, kernel_threads
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.hk_model import PhaseConvention, SkinParams, hk_reflectance
+from fingerps_recon.photometric.hk_solver import HKResult, solve_hk
+from fingerps_recon.photometric.lambertian import lambertian_shading, solve_lambertian
 
 # Seven lights around the camera at 21-26 degrees from its axis, as on the rig (PS frame).
 _AZIMUTH = np.radians([8.0, 57.0, 110.0, 160.0, 209.0, 262.0, 313.0])
@@ -338,7 +338,7 @@ def rig_finger() -> dict[str, object]:
     """The simulated rig's finger burst (as bench/bench_recon_speed.py, without the flat
     field): solve_hk's inputs from the Lambertian start, distant lights."""
     from fingerps_driver.simulation import Scene, SimulatedRig
-    from fingerps_recon.finger_mask import finger_mask
+    from fingerps_recon.photometric.finger_mask import finger_mask
 
     rig = SimulatedRig()
     images = np.stack([

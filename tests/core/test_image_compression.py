@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from fingerps_driver.simulation import SimulatedRig
-from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.image_compression import (
+from fingerps_ros.errors import MessageError
+from fingerps_ros.image_compression import (
     CONFIG_HEADER_BYTES,
     DepthQuantization,
     compressed_format,
@@ -246,7 +246,7 @@ def test_upstream_defaults_would_lose_the_finger_and_any_header_decodes() -> Non
      ["1 channel", "not rgb8"]),
 ])
 def test_bad_input_is_refused_with_a_reason(call, words: list[str]) -> None:
-    with pytest.raises(FingerpsReconError) as raised:
+    with pytest.raises(MessageError) as raised:
         call()
     for word in words:
         assert word in str(raised.value), (word, str(raised.value))

@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.integration on analytic surfaces."""
+"""Tests of fingerps_recon.surface.integration on analytic surfaces."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import pytest
 
 from fingerps_driver.simulation import SimulatedRig
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.integration import (
+from fingerps_recon.photometric.pixel_rays import pixel_rays_optical
+from fingerps_recon.surface.integration import (
     IntegrationMethod,
     depth_to_points,
     height_to_distance,
     integrate_normals,
     integrate_normals_perspective,
 )
-from fingerps_recon.pixel_rays import pixel_rays_optical
 
 PIXEL = 2e-5  # metres per pixel
 

@@ -1,11 +1,11 @@
-"""fingerps_recon.kernel_warm_up: every kernel the pipeline calls is ready afterwards."""
+"""photometric.kernel_warm_up: every kernel the pipeline calls is ready afterwards."""
 
 from __future__ import annotations
 
 import time
 
-from fingerps_recon import kernel_warm_up
-from fingerps_recon.kernel_warm_up import KERNEL_MODULES, WarmUp, warm_up_kernels
+from fingerps_recon.photometric import kernel_warm_up
+from fingerps_recon.photometric.kernel_warm_up import KERNEL_MODULES, WarmUp, warm_up_kernels
 
 
 def test_warm_up_readies_every_kernel_and_a_second_call_compiles_nothing() -> None:

@@ -1,14 +1,18 @@
-"""Tests of fingerps_recon.lambertian on rendered spheres."""
+"""Tests of fingerps_recon.photometric.lambertian on rendered spheres."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fingerps_recon import kernel_threads
-from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.lambertian import LambertianResult, lambertian_shading, solve_lambertian
+from fingerps_recon.photometric import kernel_threads
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.lambertian import (
+    LambertianResult,
+    lambertian_shading,
+    solve_lambertian,
+)
 
 # Seven lights around the camera, as on the rig: one central, six on a ring (PS frame).
 _RING = [

@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fingerps_recon import hk_solver
-from fingerps_recon.angular_error import angular_error_deg
-from fingerps_recon.hk_model import hk_reflectance
-from fingerps_recon.hk_solver import solve_hk
-from fingerps_recon.lambertian import lambertian_shading, solve_lambertian
+from fingerps_recon.photometric import hk_solver
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.hk_model import hk_reflectance
+from fingerps_recon.photometric.hk_solver import solve_hk
+from fingerps_recon.photometric.lambertian import lambertian_shading, solve_lambertian
 
 K = 96
 SCALE = 45.0  # the HK model's A, as on the rig

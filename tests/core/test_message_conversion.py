@@ -12,9 +12,9 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
-from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.image_conversion import array_to_image, image_to_array
-from fingerps_recon.point_cloud_conversion import cloud_to_points, points_to_cloud
+from fingerps_ros.errors import MessageError
+from fingerps_ros.image_conversion import array_to_image, image_to_array
+from fingerps_ros.point_cloud_conversion import cloud_to_points, points_to_cloud
 
 H, W = 5, 7  # odd sizes, so a row is no multiple of 2, 4 or 8 bytes in 8-bit encodings
 
@@ -95,17 +95,17 @@ def test_big_endian_mono16() -> None:
 def test_too_little_data_is_refused(step: int, missing: int) -> None:
     msg = Image(height=H, width=W, encoding="mono8", step=step,
                 data=bytes(step * H - missing))
-    with pytest.raises(FingerpsReconError, match="too few"):
+    with pytest.raises(MessageError, match="too few"):
         image_to_array(msg)
 
 
 def test_unsupported_encodings_are_refused() -> None:
-    with pytest.raises(FingerpsReconError, match="bayer_rggb8"):
+    with pytest.raises(MessageError, match="bayer_rggb8"):
         array_to_image(np.zeros((H, W), np.uint8), encoding="bayer_rggb8")
     msg = Image(height=H, width=W, encoding="yuv422", step=2 * W, data=bytes(2 * W * H))
-    with pytest.raises(FingerpsReconError, match="yuv422"):
+    with pytest.raises(MessageError, match="yuv422"):
         image_to_array(msg)
-    with pytest.raises(FingerpsReconError, match="3 channel"):
+    with pytest.raises(MessageError, match="3 channel"):
         array_to_image(np.zeros((H, W), np.uint8), encoding="rgb8")
 
 
@@ -128,13 +128,13 @@ def test_point_cloud_round_trip() -> None:
 
 
 def test_point_cloud_shapes_are_checked() -> None:
-    with pytest.raises(FingerpsReconError, match=r"\(4, 2\)"):
+    with pytest.raises(MessageError, match=r"\(4, 2\)"):
         points_to_cloud(np.zeros((4, 2)), np.zeros(4), header=_header())
-    with pytest.raises(FingerpsReconError, match=r"\(3,\)"):
+    with pytest.raises(MessageError, match=r"\(3,\)"):
         points_to_cloud(np.zeros((4, 3)), np.zeros(3), header=_header())
     cloud = points_to_cloud(np.zeros((4, 3)), np.zeros(4), header=_header())
     cloud.fields = cloud.fields[:3]
-    with pytest.raises(FingerpsReconError, match="not x, y, z, intensity"):
+    with pytest.raises(MessageError, match="not x, y, z, intensity"):
         cloud_to_points(cloud)
 
 

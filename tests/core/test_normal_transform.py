@@ -1,13 +1,13 @@
-"""Tests of fingerps_recon.normal_transform (paper Eq. 12)."""
+"""Tests of fingerps_recon.photometric.normal_transform (paper Eq. 12)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.normal_transform import enhance_ridges
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.normal_transform import enhance_ridges
 
 H, W = 40, 60
 

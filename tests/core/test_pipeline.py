@@ -1,4 +1,4 @@
-"""The reconstruction pipeline (`fingerps_recon.pipeline.reconstruct`) on a simulated burst.
+"""The reconstruction pipeline (`photometric.pipeline.reconstruct`) on a simulated burst.
 
 Ground truth: the simulated rig's finger (``SimulatedRig.finger_truth``). The pipeline is fed
 the rig's true "distant-light" directions from the apex and its true LED intensities there,
@@ -26,9 +26,9 @@ import pytest
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import FingerTruth, Scene, SimulatedRig
-from fingerps_recon.angular_error import angular_error_deg
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.pipeline import (
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.pipeline import (
     Model,
     Reconstruction,
     ReconstructionOptions,

@@ -1,4 +1,4 @@
-"""Round-trip and parser tests of fingerps_recon.ply."""
+"""Round-trip and parser tests of fingerps_recon.surface.ply."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.ply import read_ply, write_ply
+from fingerps_recon.surface.ply import read_ply, write_ply
 
 
 def _cloud(n: int = 257) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""fingerps_recon.privacy: owner-only files by default, localhost discovery by default."""
+"""fingerps_ros.privacy: owner-only files by default, localhost discovery by default."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from fingerps_recon.privacy import (
+from fingerps_ros.privacy import (
     PrivacySettingError,
     apply_private_umask,
     start_private_tool,

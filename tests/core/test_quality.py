@@ -9,8 +9,8 @@ import pytest
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.pipeline import reconstruct
-from fingerps_recon.quality import (
+from fingerps_recon.photometric.pipeline import reconstruct
+from fingerps_recon.scan.quality import (
     QualityFigures,
     QualityThresholds,
     judge_quality,

@@ -3,7 +3,8 @@
 ``check_light_calibration``, ``flat_field_maps``), without a ROS graph; and the node's
 worker, in this process, going on after an error nobody expected.
 
-Every bad message must end in a ``FingerpsReconError`` that says what is wrong - never in
+Every bad message must end in a ``FingerpsError`` (``FingerpsReconError``, ``MessageError``)
+that says what is wrong - never in
 another exception (which killed recon_node's worker thread), never in an "empty" result
 counted as a reconstruction - and a good burst must still reconstruct afterwards with the
 same ``PreparedCalibrations``.
@@ -27,10 +28,8 @@ from std_msgs.msg import Header
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_recon import recon_node
-from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.frames import ps_to_optical
-from fingerps_recon.image_conversion import array_to_image, images_to_array
-from fingerps_recon.pipeline import Model, ReconstructionOptions
+from fingerps_recon.photometric.frames import ps_to_optical
+from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
 from fingerps_recon.recon_node import (
     BurstLimits,
     EmptyReconstructionError,
@@ -43,6 +42,8 @@ from fingerps_recon.recon_node import (
     flat_field_maps,
     reconstruct_burst,
 )
+from fingerps_ros.errors import FingerpsError
+from fingerps_ros.image_conversion import array_to_image, images_to_array
 
 OPTIONS = ReconstructionOptions(model=Model.LAMBERT)
 NAN = math.nan
@@ -104,7 +105,7 @@ def reconstructs(rig: SimulatedRig, images: np.ndarray, prepared: PreparedCalibr
 
 def refused(msg: Burst, lights: LightCalibration, *, match: str,
             flat: np.ndarray | None = None, prepared: PreparedCalibrations | None = None,
-            limits: BurstLimits | None = None, error: type = FingerpsReconError) -> str:
+            limits: BurstLimits | None = None, error: type = FingerpsError) -> str:
     with pytest.raises(error, match=match) as info:
         reconstruct_burst(msg, lights, flat, options=OPTIONS, prepared=prepared,
                           limits=limits)
@@ -118,7 +119,7 @@ def test_empty_images_are_refused(rig: SimulatedRig, images: np.ndarray,
     prepared = PreparedCalibrations()
     empty = np.zeros((rig.led_count, *shape), dtype=np.uint8)
     msg = burst(rig, empty)
-    with pytest.raises(FingerpsReconError, match="empty"):
+    with pytest.raises(FingerpsError, match="empty"):
         check_burst_size(msg, BurstLimits())
     refused(msg, calibration(rig), match="empty", prepared=prepared)
     reconstructs(rig, images, prepared)
@@ -137,28 +138,28 @@ def test_images_beyond_the_bounds_are_refused_before_they_are_read(
     for frame in msg.frames:
         frame.image = huge
     start = time.perf_counter()
-    with pytest.raises(FingerpsReconError, match="beyond max_image_width"):
+    with pytest.raises(FingerpsError, match="beyond max_image_width"):
         check_burst_size(msg, BurstLimits())
-    with pytest.raises(FingerpsReconError, match="too few"):
+    with pytest.raises(FingerpsError, match="too few"):
         images_to_array([huge] * rig.led_count)
     assert time.perf_counter() - start < 1.0
 
 
 def test_too_many_frames_are_refused(rig: SimulatedRig, images: np.ndarray) -> None:
     msg = burst(rig, images, leds=list(range(17)))
-    with pytest.raises(FingerpsReconError, match="max_burst_frames 16"):
+    with pytest.raises(FingerpsError, match="max_burst_frames 16"):
         check_burst_size(msg, BurstLimits())
     refused(msg, calibration(rig), match="max_burst_frames")
 
 
 def test_dark_and_repeat_frames_are_bounded_too(rig: SimulatedRig, images: np.ndarray) -> None:
     msg = burst(rig, images, dark=Image(height=0, width=0, encoding="mono8"))
-    with pytest.raises(FingerpsReconError, match="empty"):
+    with pytest.raises(FingerpsError, match="empty"):
         check_burst_size(msg, BurstLimits())
     msg = burst(rig, images)
     msg.has_repeat_frame = True
     msg.repeat_frame.image = Image(height=5000, width=10, encoding="mono8", step=10)
-    with pytest.raises(FingerpsReconError, match="beyond"):
+    with pytest.raises(FingerpsError, match="beyond"):
         check_burst_size(msg, BurstLimits())
 
 
@@ -263,10 +264,10 @@ def _degenerate(rig: SimulatedRig) -> dict[str, LightCalibration]:
 def test_degenerate_light_calibrations_are_refused(rig: SimulatedRig, images: np.ndarray,
                                                    case: str) -> None:
     lights = _degenerate(rig)[case]
-    with pytest.raises(FingerpsReconError):
+    with pytest.raises(FingerpsError):
         check_light_calibration(lights)
     prepared = PreparedCalibrations()
-    with pytest.raises(FingerpsReconError):
+    with pytest.raises(FingerpsError):
         reconstruct_burst(burst(rig, images), lights, None, options=OPTIONS, prepared=prepared)
     reconstructs(rig, images, prepared)
 
@@ -315,7 +316,7 @@ def test_bad_flat_fields_are_refused_on_arrival(rig: SimulatedRig, case: str) ->
         msg.maps = []
     elif case == "too many":
         msg.maps = msg.maps * 3
-    with pytest.raises(FingerpsReconError):
+    with pytest.raises(FingerpsError):
         flat_field_maps(msg, BurstLimits())
 
 

@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.ridge_visibility on synthetic ridge normal fields."""
+"""Tests of fingerps_recon.photometric.ridge_visibility on synthetic ridge normal fields."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.normal_transform import enhance_ridges
-from fingerps_recon.ridge_visibility import ridge_visibility
+from fingerps_recon.photometric.normal_transform import enhance_ridges
+from fingerps_recon.photometric.ridge_visibility import ridge_visibility
 
 PERIOD = 12.0
 

@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.rolled_print: scale, polarity, format, bad input, the rig's finger.
+"""Tests of surface.rolled_print: scale, polarity, format, bad input, the rig's finger.
 
 Analytic case: the 8 mm cylinder of test_surface_unrolling carrying 50 um ridges along its
 axis, crests every 0.5 mm of arc length. Simulated case: the rig's finger (true depth),
@@ -25,10 +25,10 @@ from test_surface_unrolling import APEX_MM, K, cylinder
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_driver.simulation.rig import RigConfig
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.pipeline import Reconstruction, reconstruct
-from fingerps_recon.pixel_rays import pixel_rays_optical
-from fingerps_recon.rolled_print import (
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.pipeline import Reconstruction, reconstruct
+from fingerps_recon.photometric.pixel_rays import pixel_rays_optical
+from fingerps_recon.surface.rolled_print import (
     PrintRejection,
     RidgeSignal,
     RolledPrint,

@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.message_definition and fingerps_recon.session_bag.
+"""Tests of fingerps_recon.sessions.message_definition and fingerps_recon.sessions.session_bag.
 
 Bags are written in tmp_path from real serialized messages and read back by readers that
 share no code with the writer: the ``mcap`` reader, ``mcap_ros2``'s decoder (decodes from the
@@ -26,22 +26,22 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
-from fingerps_recon import qos
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.message_definition import (
+from fingerps_recon.sessions.message_definition import (
     SEPARATOR,
     MessageDefinitionError,
     load_message_definition,
     message_definition,
     type_description_hash,
 )
-from fingerps_recon.session_bag import (
+from fingerps_recon.sessions.session_bag import (
     INT64_MAX,
     QosProfileFields,
     SessionBagError,
     SessionBagWriter,
     qos_profiles_yaml,
 )
+from fingerps_ros import qos
 
 T0 = 1_700_000_000_000_000_000
 BURST_TYPE = "fingerps_msgs/msg/Burst"

@@ -11,8 +11,8 @@ from scipy.optimize import minimize
 
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.lambertian import lambertian_shading
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.lambertian import lambertian_shading
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests of fingerps_calib.sphere_calibration on analytic inputs.
+"""Tests of fingerps_calib.lights.sphere_calibration on analytic inputs.
 
 Silhouettes are computed exactly (the tangent cone of the sphere, or pixel coverage of
 the ray-sphere hit test), highlights are Gaussian blobs put at the projection of chosen
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.sphere_calibration import (
+from fingerps_calib.lights.sphere_calibration import (
     calibrate_lights,
     calibrate_lights_orthographic,
     fit_sphere_center,

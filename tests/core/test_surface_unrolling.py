@@ -1,4 +1,4 @@
-"""Tests of fingerps_recon.surface_unrolling on analytic surfaces seen through a pinhole.
+"""Tests of fingerps_recon.surface.surface_unrolling on analytic surfaces seen through a pinhole.
 
 A cylinder (radius 8 mm, axis vertical in the image, a finger's width) is developable: the
 unrolling must keep every distance along the surface. A sphere cap (radius 10 mm, out to a
@@ -23,7 +23,7 @@ import pytest
 import scipy.ndimage
 
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.surface_unrolling import UnrollingError, unroll_surface
+from fingerps_recon.surface.surface_unrolling import UnrollingError, unroll_surface
 
 SHAPE = (493, 659)
 K = np.array([[3000.0, 0.0, (SHAPE[1] - 1) / 2], [0.0, 3000.0, (SHAPE[0] - 1) / 2],

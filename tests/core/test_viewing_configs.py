@@ -16,9 +16,9 @@ import yaml
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 from std_msgs.msg import Header
 
-from fingerps_recon import topics
-from fingerps_recon.point_cloud_conversion import points_to_cloud
 from fingerps_recon.recorder_node import TOPIC_TABLE
+from fingerps_ros import topics
+from fingerps_ros.point_cloud_conversion import points_to_cloud
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "src" / "fingerps_recon" / "config"

@@ -13,8 +13,8 @@ from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
 
 from fingerps_msgs.msg import Burst, LightCalibration
-from fingerps_recon import qos, topics
-from fingerps_recon.mcap_records import McapDamageError, scan_records
+from fingerps_recon.sessions.mcap_records import McapDamageError, scan_records
+from fingerps_ros import qos, topics
 
 REPO = Path(__file__).resolve().parents[2]
 BAG_RECOVER = REPO / "install" / "fingerps_recon" / "lib" / "fingerps_recon" / "bag_recover"

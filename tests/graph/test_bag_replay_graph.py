@@ -23,13 +23,17 @@ from std_msgs.msg import Header
 
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
-from fingerps_recon import qos, topics
-from fingerps_recon.bag_reader import SessionBagReader
-from fingerps_recon.frames import optical_to_ps, ps_to_optical
-from fingerps_recon.image_conversion import array_to_image, image_to_array
-from fingerps_recon.message_definition import MessageDefinition, load_message_definition
-from fingerps_recon.pipeline import Model, ReconstructionOptions, reconstruct
-from fingerps_recon.session_bag import QosProfileFields, SessionBagWriter, qos_profiles_yaml
+from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
+from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions, reconstruct
+from fingerps_recon.sessions.bag_reader import SessionBagReader
+from fingerps_recon.sessions.message_definition import MessageDefinition, load_message_definition
+from fingerps_recon.sessions.session_bag import (
+    QosProfileFields,
+    SessionBagWriter,
+    qos_profiles_yaml,
+)
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import array_to_image, image_to_array
 
 NS = "/" + topics.NAMESPACE
 BURST_TOPIC = f"{NS}/{topics.BURST}"

@@ -17,7 +17,7 @@ from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import GetParameters, ListParameters
 from rclpy.node import Node
 
-from fingerps_recon import topics
+from fingerps_ros import topics
 
 NS = "/" + topics.NAMESPACE
 NODES = ("driver", "calib", "recon", "recorder", "scan")
@@ -171,7 +171,7 @@ def test_a_bad_parameter_file_stops_bringup_naming_the_key(
 def test_the_graph_bringup_starts_discovers_on_this_machine_only(
         ros_node: Node, start_node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # Jazzy's default is the subnet: with the variable unset, bringup must start its nodes
-    # with localhost discovery (fingerps_recon.privacy), and its files owner-only.
+    # with localhost discovery (fingerps_ros.privacy), and its files owner-only.
     params = yaml.safe_load(_config("fingerps_driver", "fingerps_sim.yaml").read_text())
     params["/fingerps/recorder"]["ros__parameters"]["bags_dir"] = str(tmp_path / "bags")
     monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE")

@@ -27,8 +27,8 @@ from sensor_msgs.msg import CameraInfo
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
-from fingerps_recon import qos, topics
-from fingerps_recon.image_conversion import array_to_image
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import array_to_image
 
 NS = "/" + topics.NAMESPACE
 LIGHTS_TOPIC = f"{NS}/{topics.LIGHT_CALIBRATION}"

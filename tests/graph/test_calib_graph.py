@@ -23,8 +23,8 @@ from rclpy.node import Node
 from fingerps_driver.simulation import SimulatedRig
 from fingerps_msgs.msg import FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
-from fingerps_recon import qos, topics
-from fingerps_recon.image_conversion import array_to_image, image_to_array
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import array_to_image, image_to_array
 
 NS = "/" + topics.NAMESPACE
 LIGHTS_TOPIC = f"{NS}/{topics.LIGHT_CALIBRATION}"

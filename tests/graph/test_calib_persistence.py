@@ -20,12 +20,12 @@ import pytest
 import yaml
 from rclpy.node import Node
 
-from fingerps_calib.camera_info_yaml import CameraIntrinsics, save_camera_info
+from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, save_camera_info
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
-from fingerps_recon import qos, topics
-from fingerps_recon.image_conversion import array_to_image, image_to_array
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import array_to_image, image_to_array
 
 NS = "/" + topics.NAMESPACE
 LIGHTS_TOPIC = f"{NS}/{topics.LIGHT_CALIBRATION}"

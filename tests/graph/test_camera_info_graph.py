@@ -14,12 +14,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
 from sensor_msgs.srv import SetCameraInfo
 
-from fingerps_calib.camera_info_conversion import intrinsics_to_camera_info
-from fingerps_calib.camera_info_url import store_camera_info
-from fingerps_calib.camera_info_yaml import CameraIntrinsics, load_camera_info
+from fingerps_calib.intrinsics.camera_info_conversion import intrinsics_to_camera_info
+from fingerps_calib.intrinsics.camera_info_url import store_camera_info
+from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, load_camera_info
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon import qos, topics
+from fingerps_ros import qos, topics
 
 NS = "/" + topics.NAMESPACE
 SERVICE = f"{NS}/driver/set_camera_info"  # camera_info_manager's ~/set_camera_info

@@ -31,11 +31,11 @@ from std_msgs.msg import Header
 
 from fingerps_driver.demo import SPHERE_PLACEMENTS
 from fingerps_msgs.srv import CalibrateLights, CaptureBurst
-from fingerps_recon import compressed_topics, qos, topics
-from fingerps_recon.compressed_topics import CompressedTopics
-from fingerps_recon.image_compression import DepthQuantization, decode_compressed
-from fingerps_recon.image_conversion import image_to_array
-from fingerps_recon.parameters import ParameterChecks
+from fingerps_ros import compressed_topics, qos, topics
+from fingerps_ros.compressed_topics import CompressedTopics
+from fingerps_ros.image_compression import DepthQuantization, decode_compressed
+from fingerps_ros.image_conversion import image_to_array
+from fingerps_ros.parameters import ParameterChecks
 
 NS = "/" + topics.NAMESPACE
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

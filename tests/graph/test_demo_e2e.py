@@ -12,7 +12,7 @@ import yaml
 from ament_index_python.packages import get_package_prefix
 from mcap.reader import make_reader
 
-from fingerps_recon.ply import read_ply
+from fingerps_recon.surface.ply import read_ply
 
 # The issue-10 bound: HK with calibrated near lights measures 1.2921-1.2923 deg over the
 # bursts a run reconstructs (Lambertian ~3.2).

@@ -15,11 +15,11 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 
-from fingerps_calib.camera_info_yaml import CameraIntrinsics, save_camera_info
+from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, save_camera_info
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon import qos, topics
-from fingerps_recon.image_conversion import image_to_array
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
 H, W = 12, 16

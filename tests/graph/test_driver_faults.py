@@ -15,12 +15,12 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 
-from fingerps_driver.board_emulator import BoardEmulatorControl, Fault
+from fingerps_driver.board.board_emulator import BoardEmulatorControl, Fault
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon import qos, topics
-from fingerps_recon.image_conversion import image_to_array
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
 LEDS = list(range(7))

@@ -14,8 +14,8 @@ from rclpy.node import Node
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon import qos, topics
-from fingerps_recon.image_conversion import image_to_array
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
 

@@ -20,8 +20,8 @@ from test_recon_graph import NS, _burst, _calibration, _diagnostic_values, _key
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, LightCalibration
-from fingerps_recon import qos, topics
-from fingerps_recon.image_conversion import image_to_array
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import image_to_array
 
 IDENTITY = 7
 PX_PER_MM = 500 / 25.4

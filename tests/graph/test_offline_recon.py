@@ -30,9 +30,9 @@ import scipy.io
 from ament_index_python.packages import get_package_prefix
 
 from fingerps_driver.simulation import Scene, SimulatedRig
-from fingerps_recon.angular_error import angular_error_deg
-from fingerps_recon.normal_map import normal_map_rgb
-from fingerps_recon.ply import read_ply
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.surface.ply import read_ply
 
 SPHERE_MAX_MEAN_DEG = 1.0   # measured 0.076 (8-bit grey), 0.0002 (16-bit colour)
 FINGER_MAX_MEAN_DEG = 5.0   # measured 3.15
@@ -301,7 +301,7 @@ def test_model_hk(offline_recon: Callable, tmp_path: Path,
                   finger_folder: tuple[Path, SimulatedRig]) -> None:
     folder, _ = finger_folder
     run = offline_recon(folder, "--out", tmp_path / "out", "--model", "hk")
-    if importlib.util.find_spec("fingerps_recon.hk_solver") is None:
+    if importlib.util.find_spec("fingerps_recon.photometric.hk_solver") is None:
         assert run.returncode == 2
         assert run.stderr.strip() == ("offline_recon: error: the HK solver is not available "
                                       "in this build; use --model lambert")

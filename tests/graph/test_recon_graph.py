@@ -36,11 +36,11 @@ from std_msgs.msg import Header
 
 from fingerps_driver.simulation import FingerTruth, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
-from fingerps_recon import qos, topics
-from fingerps_recon.angular_error import angular_error_deg
-from fingerps_recon.frames import optical_to_ps, ps_to_optical
-from fingerps_recon.image_conversion import array_to_image, image_to_array
-from fingerps_recon.point_cloud_conversion import cloud_to_points
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import array_to_image, image_to_array
+from fingerps_ros.point_cloud_conversion import cloud_to_points
 
 NS = "/" + topics.NAMESPACE
 FRAME_ID = "fingerps_camera_optical_frame"

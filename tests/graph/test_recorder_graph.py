@@ -25,7 +25,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from sensor_msgs.msg import Image
 
 from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
-from fingerps_recon import qos, topics
+from fingerps_ros import qos, topics
 
 NAMESPACE = "/" + topics.NAMESPACE
 BURST_TOPIC = f"{NAMESPACE}/{topics.BURST}"

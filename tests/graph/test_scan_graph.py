@@ -18,15 +18,15 @@ from rclpy.action import ActionClient
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from fingerps_driver.board_emulator import BoardEmulatorControl
+from fingerps_driver.board.board_emulator import BoardEmulatorControl
 from fingerps_driver.demo import SPHERE_PLACEMENTS
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_msgs.action import Scan
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
-from fingerps_recon import topics
-from fingerps_recon.angular_error import angular_error_deg
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.image_conversion import image_to_array
+from fingerps_recon.photometric.angular_error import angular_error_deg
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_ros import topics
+from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
 MAE_LIMIT_DEG = 2.0  # as the demo: HK with calibrated near lights, ~1.3 measured

@@ -21,7 +21,7 @@ from mcap.reader import make_reader
 from rclpy.node import Node
 
 from fingerps_msgs.msg import Burst
-from fingerps_recon import qos, topics
+from fingerps_ros import qos, topics
 
 NS = "/" + topics.NAMESPACE
 NODES = {

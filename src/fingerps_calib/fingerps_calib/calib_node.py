@@ -1,7 +1,7 @@
 """calib_node: light directions from a shiny sphere and flat-field maps from a white target.
 
-Thin ROS adapter around ``fingerps_calib.sphere_calibration.calibrate_lights``,
-``fingerps_calib.led_triangulation.combine_placements`` and
+Thin ROS adapter around ``fingerps_calib.lights.sphere_calibration.calibrate_lights``,
+``fingerps_calib.lights.led_triangulation.combine_placements`` and
 ``fingerps_calib.flat_field_calibration.flat_field_maps``. The services take the images in
 the request, or, when the request has none, ask the driver for a burst. Camera intrinsics
 come from ``camera_info_file`` when it is set, else from the driver's camera_info.
@@ -62,11 +62,11 @@ from fingerps_calib.calibration_store import (
     save_flat_field,
     save_lights,
 )
-from fingerps_calib.camera_info_yaml import CameraIntrinsics, load_camera_info
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import MIN_IMAGE_SIDE_PX, flat_field_maps
-from fingerps_calib.led_triangulation import Placement, combine_placements
-from fingerps_calib.sphere_calibration import (
+from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, load_camera_info
+from fingerps_calib.lights.led_triangulation import Placement, combine_placements
+from fingerps_calib.lights.sphere_calibration import (
     RADIUS_RANGE_M,
     LightCalibrationResult,
     calibrate_lights,
@@ -74,11 +74,11 @@ from fingerps_calib.sphere_calibration import (
 )
 from fingerps_msgs.msg import FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
-from fingerps_recon import qos, topics
-from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.image_conversion import array_to_image, image_to_array
-from fingerps_recon.node_runner import StartupError, run_node
-from fingerps_recon.parameters import ParameterChecks, descriptor
+from fingerps_ros import qos, topics
+from fingerps_ros.errors import FingerpsError
+from fingerps_ros.image_conversion import array_to_image, image_to_array
+from fingerps_ros.node_runner import StartupError, run_node
+from fingerps_ros.parameters import ParameterChecks, descriptor
 
 DEFAULT_FRAME_ID = "fingerps_camera_optical_frame"
 LIGHTS_PICTURE = "lights.png"
@@ -682,7 +682,7 @@ def _picture(images: np.ndarray, result: LightCalibrationResult, camera: _Camera
 def _pixels(frame: TaggedFrame) -> np.ndarray:
     try:
         return image_to_array(frame.image)
-    except FingerpsReconError as exc:
+    except FingerpsError as exc:
         raise FingerpsCalibError(f"LED {frame.led_index}: {exc}") from exc
 
 

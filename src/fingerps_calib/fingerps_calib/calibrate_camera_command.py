@@ -22,14 +22,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fingerps_calib.camera_info_url import (
+from fingerps_calib.errors import FingerpsCalibError
+from fingerps_calib.intrinsics.camera_info_url import (
     check_camera_name,
     resolve_camera_info_url,
     store_camera_info,
 )
-from fingerps_calib.checkerboard_calibration import calibrate_checkerboard
-from fingerps_calib.errors import FingerpsCalibError
-from fingerps_recon.privacy import start_private_tool
+from fingerps_calib.intrinsics.checkerboard_calibration import calibrate_checkerboard
+from fingerps_ros.privacy import start_private_tool
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 EXIT_FAILED, EXIT_BAD_INPUT = 1, 2
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_calib calibrate_camera``."""
-    if not start_private_tool("calibrate_camera"):  # owner-only files (fingerps_recon.privacy)
+    if not start_private_tool("calibrate_camera"):  # owner-only files (fingerps_ros.privacy)
         return 2
     args = parser().parse_args(argv)
     try:

@@ -40,11 +40,11 @@ from fingerps_calib.calibration_picture import (
     write_png,
 )
 from fingerps_calib.calibration_store import write_atomic
-from fingerps_calib.camera_info_yaml import load_camera_info
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.sphere_calibration import calibrate_lights, calibrate_lights_orthographic
-from fingerps_recon.frames import ps_to_optical
-from fingerps_recon.privacy import start_private_tool
+from fingerps_calib.intrinsics.camera_info_yaml import load_camera_info
+from fingerps_calib.lights.sphere_calibration import calibrate_lights, calibrate_lights_orthographic
+from fingerps_recon.photometric.frames import ps_to_optical
+from fingerps_ros.privacy import start_private_tool
 
 DIRECTIONS_FILE = "light_directions.txt"
 REPORT_FILE = "light_calibration_report.yaml"
@@ -236,7 +236,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_calib calibrate_lights``."""
-    if not start_private_tool("calibrate_lights"):  # owner-only files (fingerps_recon.privacy)
+    if not start_private_tool("calibrate_lights"):  # owner-only files (fingerps_ros.privacy)
         return 2
     args = parser().parse_args(argv)
     try:

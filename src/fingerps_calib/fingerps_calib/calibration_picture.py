@@ -26,7 +26,7 @@ import numpy as np
 
 from fingerps_calib.calibration_store import write_atomic
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_recon.frames import optical_to_ps
+from fingerps_recon.photometric.frames import optical_to_ps
 
 _PANEL = 480
 _FONT = cv2.FONT_HERSHEY_SIMPLEX

@@ -33,8 +33,8 @@ import numpy as np
 import yaml
 
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.led_triangulation import CombinedLights, Placement, TriangulatedLights
-from fingerps_recon.frames import optical_to_ps
+from fingerps_calib.lights.led_triangulation import CombinedLights, Placement, TriangulatedLights
+from fingerps_recon.photometric.frames import optical_to_ps
 
 LIGHTS_FILE = "lights.yaml"
 FLAT_FIELD_FILE = "flat_field.yaml"

@@ -1,5 +1,7 @@
 """Root exception of fingerps_calib."""
 
+from fingerps_ros.errors import FingerpsError
 
-class FingerpsCalibError(Exception):
+
+class FingerpsCalibError(FingerpsError):
     """Base of every error fingerps_calib raises; the message says what to do."""

@@ -37,7 +37,7 @@ from pathlib import Path
 import yaml
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
-from fingerps_recon.privacy import start_private_tool, use_localhost_discovery
+from fingerps_ros.privacy import start_private_tool, use_localhost_discovery
 
 EXIT_BAD_INPUT = 2
 NAMESPACE = "/fingerps"
@@ -185,7 +185,7 @@ def run(params: Path, *, log_dir: Path | None, stop_timeout_s: float,
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_driver bringup``."""
-    if not start_private_tool("bringup"):  # owner-only files (fingerps_recon.privacy)
+    if not start_private_tool("bringup"):  # owner-only files (fingerps_ros.privacy)
         return 2
     use_localhost_discovery()  # the graph it starts talks to this machine only, by default
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -33,14 +33,14 @@ from sensor_msgs.msg import Image, PointCloud2
 
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
-from fingerps_recon import qos, topics
-from fingerps_recon.angular_error import angular_error_deg, summarize_angular_error
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.image_conversion import image_to_array
-from fingerps_recon.normal_map import normal_map_rgb
-from fingerps_recon.ply import write_ply
-from fingerps_recon.point_cloud_conversion import cloud_to_points
-from fingerps_recon.privacy import start_private_tool, use_localhost_discovery
+from fingerps_recon.photometric.angular_error import angular_error_deg, summarize_angular_error
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.surface.ply import write_ply
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import image_to_array
+from fingerps_ros.point_cloud_conversion import cloud_to_points
+from fingerps_ros.privacy import start_private_tool, use_localhost_discovery
 
 # Sphere placements for the light calibration (optical frame, metres): with two or more the
 # calibration also finds the LED positions, and reconstruction uses near lights.
@@ -364,7 +364,7 @@ def print_summary(f: dict[str, float], out: Path, codes: list[int]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_driver demo``."""
-    if not start_private_tool("demo"):  # owner-only files (fingerps_recon.privacy)
+    if not start_private_tool("demo"):  # owner-only files (fingerps_ros.privacy)
         return 2
     use_localhost_discovery()  # the graph it starts talks to this machine only, by default
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

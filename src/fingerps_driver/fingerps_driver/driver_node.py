@@ -1,8 +1,8 @@
 """driver_node: switches the LEDs over serial, captures and tags bursts, publishes them.
 
 Thin ROS adapter: parameters, QoS, message conversion, the board's connection state; the
-sequencing is ``fingerps_driver.burst.capture_burst``, the board protocol
-``fingerps_driver.led_board``, the cameras ``camera``, ``camera_opencv`` and
+sequencing is ``fingerps_driver.capture.burst.capture_burst``, the board protocol
+``fingerps_driver.board.led_board``, the cameras ``camera``, ``camera_opencv`` and
 ``camera_folder``.
 
 With ``port`` = ``sim`` (the default) the node starts the board emulator on a real
@@ -40,18 +40,23 @@ from sensor_msgs.msg import CameraInfo, Image
 from sensor_msgs.srv import SetCameraInfo
 from std_msgs.msg import Header
 
-from fingerps_calib.camera_info_conversion import (
+from fingerps_calib.errors import FingerpsCalibError
+from fingerps_calib.intrinsics.camera_info_conversion import (
     camera_info_to_intrinsics,
     intrinsics_to_camera_info,
 )
-from fingerps_calib.camera_info_url import DEFAULT_CAMERA_INFO_URL
-from fingerps_calib.camera_info_yaml import CameraIntrinsics
-from fingerps_calib.errors import FingerpsCalibError
-from fingerps_driver.backoff import Backoff
-from fingerps_driver.board_emulator import BoardEmulator, BoardEmulatorControl
-from fingerps_driver.board_protocol import mask_to_indices
-from fingerps_driver.burst import BurstResult, CapturedFrame, capture_burst
-from fingerps_driver.burst_plan import (
+from fingerps_calib.intrinsics.camera_info_url import DEFAULT_CAMERA_INFO_URL
+from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics
+from fingerps_driver.board.backoff import Backoff
+from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorControl
+from fingerps_driver.board.board_protocol import mask_to_indices
+from fingerps_driver.board.led_board import BoardError, BoardRejectedError, LedBoard
+from fingerps_driver.cameras.camera import Camera, CameraError, SimulatedCamera
+from fingerps_driver.cameras.camera_folder import FolderCamera
+from fingerps_driver.cameras.camera_info_manager import CameraInfoManager
+from fingerps_driver.cameras.camera_opencv import OpenCvCamera, parse_device
+from fingerps_driver.capture.burst import BurstResult, CapturedFrame, capture_burst
+from fingerps_driver.capture.burst_plan import (
     MAX_EXPOSURE_S,
     MIN_EXPOSURE_S,
     BurstPlan,
@@ -60,21 +65,16 @@ from fingerps_driver.burst_plan import (
     check_levels,
     make_plan,
 )
-from fingerps_driver.camera import Camera, CameraError, SimulatedCamera
-from fingerps_driver.camera_folder import FolderCamera
-from fingerps_driver.camera_info_manager import CameraInfoManager
-from fingerps_driver.camera_opencv import OpenCvCamera, parse_device
-from fingerps_driver.capture_rate import CaptureRate
+from fingerps_driver.capture.capture_rate import CaptureRate
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.led_board import BoardError, BoardRejectedError, LedBoard
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon import qos, topics
-from fingerps_recon.compressed_topics import CompressedTopics
-from fingerps_recon.image_conversion import array_to_image
-from fingerps_recon.node_runner import StartupError, run_node
-from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
+from fingerps_ros import qos, topics
+from fingerps_ros.compressed_topics import CompressedTopics
+from fingerps_ros.image_conversion import array_to_image
+from fingerps_ros.node_runner import StartupError, run_node
+from fingerps_ros.parameters import ParameterChecks, descriptor, one_of
 
 SIM_PORT = "sim"
 DARK_LED = TaggedFrame.LED_DARK

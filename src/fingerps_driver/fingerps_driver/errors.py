@@ -1,5 +1,7 @@
 """Root exception of fingerps_driver."""
 
+from fingerps_ros.errors import FingerpsError
 
-class FingerpsDriverError(Exception):
+
+class FingerpsDriverError(FingerpsError):
     """Base of every error fingerps_driver raises; the message says what to do."""

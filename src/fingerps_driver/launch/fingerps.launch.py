@@ -6,7 +6,7 @@
 The same nodes and parameter file as ``ros2 run fingerps_driver bringup``; Ctrl-C stops them
 (the driver switches the LEDs off, the recorder finalises its bag). Launch sends each node
 SIGINT and, run non-interactively, the process group gets one too: the nodes ignore every
-signal after the first while they close their resources (``fingerps_recon.node_runner``),
+signal after the first while they close their resources (``fingerps_ros.node_runner``),
 and exit 0.
 
 A node that exits on its own stops the whole graph, as bringup does: a non-zero exit (2 for

@@ -1,6 +1,6 @@
 """recon_node: complete bursts in; normals, normal map, depth and a point cloud out.
 
-Thin ROS adapter around ``fingerps_recon.pipeline.reconstruct_prepared``. The burst
+Thin ROS adapter around ``fingerps_recon.photometric.pipeline.reconstruct_prepared``. The burst
 callback only enqueues; a worker thread reconstructs, so a slow reconstruction never blocks
 intake. The queue is bounded and drops the oldest burst, and the drops are counted. The
 worker first warms the compiled kernels (``/diagnostics`` says ``ready`` once it has), and
@@ -34,17 +34,16 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
-from fingerps_recon import qos, topics
-from fingerps_recon.compressed_topics import CompressedTopics
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.frames import optical_to_ps, ps_to_optical
-from fingerps_recon.image_conversion import array_to_image, image_to_array, images_to_array
-from fingerps_recon.kernel_threads import available_cores, set_thread_limit, thread_limit
-from fingerps_recon.kernel_warm_up import warm_up_kernels
-from fingerps_recon.node_runner import run_node
-from fingerps_recon.normal_map import normal_map_rgb
-from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
-from fingerps_recon.pipeline import (
+from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
+from fingerps_recon.photometric.kernel_threads import (
+    available_cores,
+    set_thread_limit,
+    thread_limit,
+)
+from fingerps_recon.photometric.kernel_warm_up import warm_up_kernels
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.photometric.pipeline import (
     Model,
     NoFingerError,
     PreparedCalibration,
@@ -56,8 +55,14 @@ from fingerps_recon.pipeline import (
     prepare_calibration,
     reconstruct_prepared,
 )
-from fingerps_recon.point_cloud_conversion import points_to_cloud
-from fingerps_recon.rolled_print import RolledPrint, RolledPrintError, rolled_print
+from fingerps_recon.surface.rolled_print import RolledPrint, RolledPrintError, rolled_print
+from fingerps_ros import qos, topics
+from fingerps_ros.compressed_topics import CompressedTopics
+from fingerps_ros.errors import FingerpsError
+from fingerps_ros.image_conversion import array_to_image, image_to_array, images_to_array
+from fingerps_ros.node_runner import run_node
+from fingerps_ros.parameters import ParameterChecks, descriptor, one_of
+from fingerps_ros.point_cloud_conversion import points_to_cloud
 
 _FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
 # Outcome of a burst, for the diagnostic level.
@@ -226,7 +231,7 @@ class ReconNode(Node):
     def _on_lights(self, msg: LightCalibration) -> None:
         try:
             check_light_calibration(msg)
-        except FingerpsReconError as exc:
+        except FingerpsError as exc:
             self._refuse("light calibration", str(exc))
             return
         self._lights = msg
@@ -236,7 +241,7 @@ class ReconNode(Node):
     def _on_flat(self, msg: FlatField) -> None:
         try:
             maps = flat_field_maps(msg, self._limits())
-        except FingerpsReconError as exc:
+        except FingerpsError as exc:
             self._refuse("flat field", str(exc))
             return
         self._flat, self._flat_maps = msg, maps
@@ -250,7 +255,7 @@ class ReconNode(Node):
     def _on_burst(self, msg: Burst) -> None:
         try:  # refused before it takes a place in the queue
             check_burst_size(msg, self._limits())
-        except FingerpsReconError as exc:
+        except FingerpsError as exc:
             self._rejected += 1
             self._note(_BAD, msg, exc)
             return
@@ -307,7 +312,7 @@ class ReconNode(Node):
             except NoFingerError as exc:
                 self._failed += 1
                 self._note(_WARN, burst, exc)
-            except FingerpsReconError as exc:
+            except FingerpsError as exc:
                 self._failed += 1
                 self._note(_BAD, burst, exc)
             except Exception as exc:  # the worker must never die
@@ -337,7 +342,7 @@ class ReconNode(Node):
                     f"calibration prepared for the {shape[1]}x{shape[0]} camera in "
                     f"{self._prepared.seconds * 1e3:.0f} ms"
                     + ("" if maps is not None else " (no flat field)"))
-        except FingerpsReconError as exc:  # the first burst will say it again, counted
+        except FingerpsError as exc:  # the first burst will say it again, counted
             self.get_logger().warning(f"calibration not prepared: {exc}",
                                       throttle_duration_sec=10.0)
 
@@ -561,7 +566,7 @@ class BurstReconstruction:
 
     def fingerprint(self) -> RolledPrint:
         """The rolled-equivalent 500 ppi print of this reconstruction
-        (`fingerps_recon.rolled_print`); raises `RolledPrintError` with the reason when the
+        (`fingerps_recon.surface.rolled_print`); raises `RolledPrintError` with the reason when the
         reconstruction covers too little of the finger or is too noisy or strained."""
         result = self.result
         return rolled_print(result.depth_m, mask=result.mask, camera_matrix=self.camera_matrix,

@@ -1,21 +1,21 @@
 """recorder_node: records a fingerps session into a rosbag2 MCAP bag.
 
 Subscribes to the session topics with ``raw=True`` (the serialized CDR bytes are written as
-they arrive, nothing is deserialized) using each topic's QoS from `fingerps_recon.qos`
+they arrive, nothing is deserialized) using each topic's QoS from `fingerps_ros.qos`
 (calibration topics reliable + transient-local, so the calibration in force when recording
-starts is recorded too), and writes them with `fingerps_recon.session_bag.SessionBagWriter`
+starts is recorded too), and writes them with `fingerps_recon.sessions.session_bag.SessionBagWriter`
 into ``<bags_dir>/<session_name>/`` (``metadata.yaml`` + ``<session_name>_0.mcap``, and
 ``_1.mcap``, ... when split), which ``ros2 bag info/play``, rosbags and Foxglove read.
 
 At kiosk scale: ``max_bagfile_size`` / ``max_bagfile_duration`` split the bag into pieces as
 rosbag2's options of the same names do (each piece a complete MCAP file, all listed in
 metadata.yaml), and ``bags_dir_limit_mb`` caps the sessions in ``bags_dir``: the oldest whole
-sessions are removed first (`fingerps_recon.session_retention`), at start, at each new piece
+sessions are removed first (`sessions.session_retention`), at start, at each new piece
 and every ``RETENTION_PERIOD_S`` seconds, never the session being recorded.
 
 Nothing is lost silently. A message the recorder subscribed to and did not write is counted
 per topic and reason: ``lost_before_recorder`` (skipped in the publisher's sequence numbers,
-`fingerps_recon.sequence_gaps`: DDS overwrote or missed it before the recorder took it),
+`fingerps_recon.sessions.sequence_gaps`: DDS overwrote or missed it before the recorder took it),
 ``dropped_writer_behind`` (the write queue was full), ``write_errors``, ``unrecordable``
 (the bag refused the topic). The counts are on ``/diagnostics`` (status ``recorder:
 recording``, WARN while losses keep happening, ERROR while writes fail) and in the finished
@@ -33,7 +33,7 @@ Shutdown: SIGINT and SIGTERM both shut the rclpy context down (rclpy Jazzy insta
 for both), the spin ends, and ``destroy_node()`` drains the queue and finishes the bag, so
 the MCAP file gets its summary and the directory its metadata.yaml. A killed process
 (SIGKILL) loses the open chunk at most; ``ros2 run fingerps_recon bag_recover <bag>``
-(`fingerps_recon.bag_recovery`) turns the rest into a valid bag and says what was lost.
+(`fingerps_recon.sessions.bag_recovery`) turns the rest into a valid bag and says what was lost.
 
 MCAP metadata records: ``fingerps.software`` (package version, ROS distro, RMW, Python,
 mcap library) and ``fingerps.recorder.parameters`` (every parameter in force). The
@@ -64,13 +64,10 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.utilities import get_rmw_implementation_identifier
 
-from fingerps_recon import qos, topics
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.message_definition import load_message_definition, split_type_name
-from fingerps_recon.node_runner import run_node
-from fingerps_recon.parameters import ParameterChecks, descriptor
-from fingerps_recon.sequence_gaps import SequenceGaps
-from fingerps_recon.session_bag import (
+from fingerps_recon.sessions.message_definition import load_message_definition, split_type_name
+from fingerps_recon.sessions.sequence_gaps import SequenceGaps
+from fingerps_recon.sessions.session_bag import (
     DEFAULT_CHUNK_SIZE,
     NS_PER_S,
     QosProfileFields,
@@ -78,7 +75,10 @@ from fingerps_recon.session_bag import (
     SessionBagWriter,
     qos_profiles_yaml,
 )
-from fingerps_recon.session_retention import RetentionResult, enforce_limit
+from fingerps_recon.sessions.session_retention import RetentionResult, enforce_limit
+from fingerps_ros import qos, topics
+from fingerps_ros.node_runner import run_node
+from fingerps_ros.parameters import ParameterChecks, descriptor
 
 PACKAGE = "fingerps_recon"
 RETENTION_PERIOD_S = 10.0

@@ -48,29 +48,30 @@ from std_msgs.msg import Header, String
 from fingerps_msgs.action import Scan
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon import qos, topics
-from fingerps_recon.burst_motion import BurstMotion, estimate_motion
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.finger_presence import FingerPresence, detect_finger
-from fingerps_recon.frames import ps_to_optical
-from fingerps_recon.image_conversion import array_to_image, image_to_array
-from fingerps_recon.node_runner import run_node
-from fingerps_recon.normal_map import normal_map_rgb
-from fingerps_recon.parameters import ParameterChecks, descriptor, one_of
-from fingerps_recon.pipeline import Model, Projection, ReconstructionOptions
-from fingerps_recon.point_cloud_conversion import points_to_cloud
-from fingerps_recon.quality import (
-    QualityThresholds,
-    QualityVerdict,
-    judge_quality,
-    quality_figures,
-)
+from fingerps_recon.photometric.frames import ps_to_optical
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.recon_node import (
     BurstReconstruction,
     PreparedCalibrations,
     reconstruct_burst,
 )
-from fingerps_recon.rolled_print import RolledPrintError
+from fingerps_recon.scan.burst_motion import BurstMotion, estimate_motion
+from fingerps_recon.scan.finger_presence import FingerPresence, detect_finger
+from fingerps_recon.scan.quality import (
+    QualityThresholds,
+    QualityVerdict,
+    judge_quality,
+    quality_figures,
+)
+from fingerps_recon.surface.rolled_print import RolledPrintError
+from fingerps_ros import qos, topics
+from fingerps_ros.errors import FingerpsError
+from fingerps_ros.image_conversion import array_to_image, image_to_array
+from fingerps_ros.node_runner import run_node
+from fingerps_ros.parameters import ParameterChecks, descriptor, one_of
+from fingerps_ros.point_cloud_conversion import points_to_cloud
 
 SCAN = "scan"                       # fingerps_msgs/action/Scan
 SCAN_REJECTIONS = "scan/rejections"  # std_msgs/String: why a goal was rejected
@@ -295,7 +296,7 @@ class ScanNode(Node):
         try:
             self._flat_maps = np.stack([image_to_array(m) for m in msg.maps]).astype(
                 np.float32)
-        except (FingerpsReconError, ValueError) as exc:
+        except (FingerpsError, ValueError) as exc:
             self.get_logger().error(f"flat field refused: {exc}")
 
     # ------------------------------------------------------------------ goals
@@ -305,7 +306,7 @@ class ScanNode(Node):
             self._settings(goal)
         except ScanAbortedError as exc:
             reason = f"impossible goal: {exc}"
-        except FingerpsReconError as exc:  # a threshold the quality module refuses
+        except FingerpsError as exc:  # a threshold the quality module refuses
             reason = f"impossible goal: {exc}"
         if reason is None and self._lights is None:
             reason = ("no light calibration yet: calibrate the lights (calibrate_lights) or "
@@ -335,7 +336,7 @@ class ScanNode(Node):
             self._counts["cancelled"] += 1
             result.success = False
             result.message = "cancelled; the LEDs are off"
-        except (ScanAbortedError, FingerpsReconError) as exc:
+        except (ScanAbortedError, FingerpsError) as exc:
             goal_handle.abort()
             self._counts["aborted"] += 1
             result.success = False

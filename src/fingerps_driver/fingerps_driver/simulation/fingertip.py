@@ -39,7 +39,7 @@ Mirroring: skin x runs towards -x of the image, so the skin seen by the camera c
 pattern mirrored left-right. The pattern is the finger's rolled print (its ground truth),
 and a rolled or contact print is the mirror image of the skin seen from outside, like a
 stamp's print of its face; legacy prints, which matchers' galleries hold, are in that
-orientation. ``fingerps_recon.rolled_print`` mirrors the camera's view back, so the print
+orientation. ``fingerps_recon.surface.rolled_print`` mirrors the camera's view back, so the print
 it recovers equals the ground-truth print up to a small similarity transform, with no flip.
 
 Pose: ``roll_deg`` turns the finger about its own axis; the geometry is symmetric about it, so
@@ -65,7 +65,7 @@ import numpy as np
 from scipy import special
 
 from fingerps_driver.simulation.fingerprint_relief import RidgeRelief
-from fingerps_recon.frames import optical_to_ps, ps_to_optical
+from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
 
 _WARP_WAVELENGTHS_M = (9.0e-3, 13.0e-3)
 _ALBEDO_COMPONENTS = 8

@@ -43,9 +43,9 @@ from fingerps_driver.simulation.led_field import LedRing
 from fingerps_driver.simulation.mirror_sphere import MirrorSphere, render_sphere
 from fingerps_driver.simulation.sensor import SensorModel
 from fingerps_driver.simulation.white_target import WhiteTarget, render_white_target
-from fingerps_recon.frames import optical_to_ps
-from fingerps_recon.hk_model import FINGER, SkinParams, hk_reflectance
-from fingerps_recon.lambertian import lambertian_shading
+from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.hk_model import FINGER, SkinParams, hk_reflectance
+from fingerps_recon.photometric.lambertian import lambertian_shading
 
 
 class Scene(Enum):
@@ -99,7 +99,7 @@ class RigConfig:
     Reflectance
         reflectance: HK (default) or LAMBERT. hk_scale: the global scale A of the
         single-scattering term (paper Eq. 4). hk_params: skin constants (default the
-        paper's finger values, ``fingerps_recon.hk_model.FINGER``).
+        paper's finger values, ``fingerps_recon.photometric.hk_model.FINGER``).
     Sphere
         sphere_radius_m, sphere_center_optical_m, sphere_diffuse_albedo,
         sphere_specular_reflectance, sphere_supersample (samples per pixel axis),

@@ -15,7 +15,7 @@ import numpy as np
 
 from fingerps_driver.simulation.camera import PinholeCamera
 from fingerps_driver.simulation.led_field import LedRing
-from fingerps_recon.frames import optical_to_ps
+from fingerps_recon.photometric.frames import optical_to_ps
 
 _TEXTURE_SIGMA_PX = 1.2
 

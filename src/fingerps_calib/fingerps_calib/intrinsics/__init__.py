@@ -1,0 +1,1 @@
+"""Camera intrinsics: checkerboard calibration, camera_info YAML files, URLs, messages."""

@@ -1,0 +1,1 @@
+"""The LED board: wire protocol, serial client, emulator on a pseudo-terminal, back-off."""

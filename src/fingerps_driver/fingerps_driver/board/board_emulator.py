@@ -1,0 +1,826 @@
+"""Emulator of the LED board on a real pseudo-terminal.
+
+The emulator opens a pty pair (``os.openpty``), sets it raw and serves the protocol of
+``fingerps_driver.board.board_protocol`` on the master side from one background thread; a
+client opens the slave device (``port``) with pyserial exactly as it would open the real
+board. Faults can be injected to test the client's recovery.
+
+Remote control: ``EmulatorControlServer`` serves a small line protocol on a UNIX socket
+(``board_emulator --control PATH``) so that another process (a test, a simulated camera)
+can inject faults, cut the power and read what the board has physically lit;
+``BoardEmulatorControl`` is its client. The serial port stays the only way to switch LEDs.
+
+Port paths: every pty (at ``start()`` and at each ``reconnect()``) gets a new kernel
+device ``/dev/pts/<n>``, usually with a different number. Give ``link_path=`` to have a
+stable path: the emulator keeps a symlink there pointing at the current pty, removes it
+on ``disconnect()``/``stop()`` (so the port vanishes for clients) and recreates it on
+``reconnect()``. ``port`` is ``link_path`` if given, else the current device.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import contextlib
+import json
+import os
+import select
+import selectors
+import signal
+import socket
+import stat
+import sys
+import threading
+import time
+import tty
+from enum import Enum
+from types import TracebackType
+from typing import Any
+
+from fingerps_driver.board.board_protocol import (
+    MAX_LEDS,
+    MAX_LEVEL,
+    REQUEST_SIGIL,
+    Command,
+    ErrorCode,
+    LineFramer,
+    ProtocolError,
+    Reply,
+    Request,
+    decode_request,
+    encode_reply,
+    format_mask,
+    mask_to_indices,
+)
+from fingerps_driver.errors import FingerpsDriverError
+
+DEFAULT_LINK_PATH = "/tmp/fingerps_board"
+FIRMWARE = "fingerps-emu-1.0"
+_POLL_S = 0.05
+
+
+class BoardEmulatorError(FingerpsDriverError):
+    """The emulator cannot do what was asked (see the message)."""
+
+
+# Replies a fault queue may cover (faults plus the replies let through before them).
+MAX_PENDING_FAULTS = 10_000
+
+
+class Fault(Enum):
+    """Faults ``BoardEmulator.inject`` can cause.
+
+    DROP_REPLY, CORRUPT_BYTE and SLOW_REPLY each affect the next reply the board sends
+    (the request itself is executed normally). DISCONNECT acts at once, or, injected with
+    ``after=n``, when the board is about to send its (n+1)-th reply from now: the request
+    has been executed, the reply is never sent and the board loses power then (a cable
+    pulled in the middle of a burst, at an exactly known step).
+    """
+
+    DROP_REPLY = "drop_reply"  # the reply is lost
+    CORRUPT_BYTE = "corrupt_byte"  # one bit of one payload byte of the reply flips
+    DISCONNECT = "disconnect"  # the pty closes, like pulling the USB cable
+    SLOW_REPLY = "slow_reply"  # the reply leaves ``slow_reply_s`` late
+
+
+class BoardEmulator:
+    """The LED board, emulated on a pseudo-terminal served by a background thread.
+
+    The lifecycle methods (start, stop, disconnect, reconnect, inject) are serialised by a
+    lock (a deferred power cut runs one from a helper thread); the state properties
+    (lit_mask, levels, history, pending_faults) are safe from any thread.
+
+    Parameters
+    ----------
+    led_count : int
+        Number of LEDs, 1..32.
+    reply_delay_s : float
+        Delay before every reply (a real board's processing time).
+    slow_reply_s : float
+        Extra delay of a reply hit by ``Fault.SLOW_REPLY``; the default lies between one
+        and two default client timeouts, so one retry recovers.
+    link_path : str or None
+        Stable symlink to the current pty (see the module docstring). An existing
+        symlink there is replaced; any other existing file is an error.
+    firmware : str
+        Firmware token reported by ``INFO``.
+    history_limit : int
+        Switches kept in ``history`` (the oldest are forgotten), so a long run stays bounded.
+    """
+
+    def __init__(
+        self,
+        led_count: int = 7,
+        *,
+        reply_delay_s: float = 0.0,
+        slow_reply_s: float = 0.075,
+        link_path: str | None = None,
+        firmware: str = FIRMWARE,
+        history_limit: int = 10_000,
+    ) -> None:
+        if not 1 <= led_count <= MAX_LEDS:
+            raise ValueError(f"led_count {led_count} outside 1..{MAX_LEDS}")
+        if reply_delay_s < 0 or slow_reply_s < 0:
+            raise ValueError("reply_delay_s and slow_reply_s must be >= 0")
+        if history_limit < 1:
+            raise ValueError(f"history_limit must be >= 1, got {history_limit}")
+        Reply(0, (firmware,))  # raises ValueError if the token is not valid on the wire
+        self._led_count = led_count
+        self._reply_delay_s = reply_delay_s
+        self._slow_reply_s = slow_reply_s
+        self._link_path = link_path
+        self._firmware = firmware
+        self._lock = threading.Lock()
+        self._mask = 0
+        self._levels = [MAX_LEVEL] * led_count
+        self._history: collections.deque[tuple[float, int]] = collections.deque(
+            maxlen=history_limit
+        )
+        self._faults: collections.deque[Fault | None] = collections.deque()
+        self._lifecycle = threading.Lock()
+        self._power_cut: threading.Thread | None = None
+        self._requests = 0
+        self._started = False
+        self._device: str | None = None
+        self._fds: tuple[int, int, int, int] | None = None  # master, slave, wake_r, wake_w
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # -- lifecycle -------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Create the pty and start serving. Raises if already started."""
+        with self._lifecycle:
+            if self._started:
+                raise BoardEmulatorError("BoardEmulator already started; call stop() first")
+            self._check_link_free()
+            self._started = True
+            self._connect()
+
+    def stop(self) -> None:
+        """Stop serving, close the pty and remove the symlink. Safe to call twice."""
+        with self._lifecycle:
+            self._disconnect()
+            self._started = False
+            cutter, self._power_cut = self._power_cut, None
+        if cutter is not None and cutter is not threading.current_thread():
+            cutter.join()
+
+    def disconnect(self) -> None:
+        """Close the pty now, as if the USB cable were pulled.
+
+        The board loses power: all LEDs go off (recorded in ``history``), levels return
+        to 255 and pending faults are forgotten. The symlink, if any, is removed.
+        """
+        with self._lifecycle:
+            if not self._started:
+                raise BoardEmulatorError("BoardEmulator not started; call start() first")
+            self._lose_power()
+
+    def reconnect(self) -> None:
+        """Serve on a new pty (a new ``/dev/pts/<n>``; the symlink follows it)."""
+        with self._lifecycle:
+            if not self._started:
+                raise BoardEmulatorError("BoardEmulator not started; call start() first")
+            self._disconnect()
+            self._connect()
+
+    def _lose_power(self) -> None:
+        """Disconnect and reset the board's state; the caller holds ``_lifecycle``."""
+        self._disconnect()
+        with self._lock:
+            if self._mask:
+                self._history.append((time.monotonic(), 0))
+            self._mask = 0
+            self._levels = [MAX_LEVEL] * self._led_count
+            self._faults.clear()
+
+    def _cut_power_later(self, served: threading.Event) -> None:
+        """From the serving thread: disconnect from a helper thread (it cannot join itself).
+
+        ``served`` is the stop event of the connection to cut; if that connection is gone
+        by the time the helper runs (stopped or reconnected meanwhile), nothing happens.
+        """
+        def cut() -> None:
+            with self._lifecycle:
+                if self._started and self._fds is not None and self._stop is served:
+                    self._lose_power()
+
+        thread = threading.Thread(target=cut, name="board-emulator-power-cut")
+        self._power_cut = thread
+        thread.start()
+
+    def __enter__(self) -> BoardEmulator:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+    # -- state -----------------------------------------------------------------------
+
+    @property
+    def port(self) -> str:
+        """Path a client opens: ``link_path`` if given, else the current pty device."""
+        if self._link_path is not None:
+            return self._link_path
+        if self._device is None:
+            raise BoardEmulatorError("BoardEmulator not started; call start() first")
+        return self._device
+
+    @property
+    def device(self) -> str | None:
+        """Current (or last) pty slave device, ``/dev/pts/<n>``; None before start."""
+        return self._device
+
+    @property
+    def connected(self) -> bool:
+        """True while a pty is being served."""
+        return self._fds is not None
+
+    @property
+    def led_count(self) -> int:
+        return self._led_count
+
+    @property
+    def lit_mask(self) -> int:
+        """Mask of the LEDs physically lit right now."""
+        with self._lock:
+            return self._mask
+
+    def lit_leds(self) -> tuple[int, ...]:
+        """Indices of the LEDs physically lit right now, ascending."""
+        return mask_to_indices(self.lit_mask)
+
+    @property
+    def levels(self) -> tuple[int, ...]:
+        """Drive level 0..255 of every LED."""
+        with self._lock:
+            return tuple(self._levels)
+
+    @property
+    def history(self) -> list[tuple[float, int]]:
+        """(time.monotonic(), mask) of the last switches (each LEDS/OFF applied, power loss)."""
+        with self._lock:
+            return list(self._history)
+
+    @property
+    def request_count(self) -> int:
+        """Number of request lines received (valid or not)."""
+        with self._lock:
+            return self._requests
+
+    @property
+    def pending_faults(self) -> list[str]:
+        """Faults still to strike, in order (``"none"`` for a reply left alone)."""
+        with self._lock:
+            return [f.name if f is not None else "none" for f in self._faults]
+
+    def inject(self, fault: Fault, count: int = 1, *, after: int = 0) -> None:
+        """Make ``count`` replies suffer ``fault``, once ``after`` more replies have gone.
+
+        Faults queue up behind those injected before. DISCONNECT with ``after=0``
+        disconnects now (``count`` is then ignored); with ``after=n`` the board loses
+        power instead of sending its (n+1)-th reply from now.
+        """
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count}")
+        if after < 0:
+            raise ValueError(f"after must be >= 0, got {after}")
+        if count + after > MAX_PENDING_FAULTS:
+            raise ValueError(
+                f"count + after must be <= {MAX_PENDING_FAULTS} (replies a test can wait "
+                f"for), got {count} + {after}")
+        if fault is Fault.DISCONNECT and after == 0:
+            self.disconnect()
+            return
+        if fault is Fault.DISCONNECT:
+            count = 1
+        with self._lock:
+            if len(self._faults) + count + after > MAX_PENDING_FAULTS:
+                raise ValueError(
+                    f"at most {MAX_PENDING_FAULTS} faults may be pending, "
+                    f"{len(self._faults)} are; 'clear' them first")
+            self._faults.extend([None] * after + [fault] * count)
+
+    def clear_faults(self) -> None:
+        """Forget every fault not yet struck."""
+        with self._lock:
+            self._faults.clear()
+
+    # -- pty and thread ----------------------------------------------------------------
+
+    def _check_link_free(self) -> None:
+        path = self._link_path
+        if path is not None and os.path.lexists(path) and not os.path.islink(path):
+            raise BoardEmulatorError(
+                f"{path} exists and is not a symlink; remove it or choose another link_path"
+            )
+
+    def _connect(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)  # the line discipline lives on the slave side
+        os.set_blocking(master, False)  # a client that never reads must not block us
+        wake_r, wake_w = os.pipe()
+        self._device = os.ttyname(slave)
+        self._fds = (master, slave, wake_r, wake_w)
+        if self._link_path is not None:
+            tmp = f"{self._link_path}.{os.getpid()}.tmp"
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            os.symlink(self._device, tmp)
+            os.replace(tmp, self._link_path)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=self._serve, args=(master, wake_r, self._stop), name="board-emulator"
+        )
+        self._thread.start()
+
+    def _disconnect(self) -> None:
+        if self._thread is not None:
+            if self._thread is threading.current_thread():
+                raise BoardEmulatorError("cannot disconnect from the emulator's own thread")
+            self._stop.set()
+            assert self._fds is not None
+            with contextlib.suppress(OSError):
+                os.write(self._fds[3], b"x")
+            self._thread.join()
+            self._thread = None
+        if self._link_path is not None and os.path.islink(self._link_path):
+            if os.readlink(self._link_path) == self._device:
+                os.unlink(self._link_path)
+        if self._fds is not None:
+            for fd in self._fds:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+            self._fds = None
+
+    def _serve(self, master: int, wake_r: int, stop: threading.Event) -> None:
+        framer = LineFramer(REQUEST_SIGIL)
+        while not stop.is_set():
+            ready, _, _ = select.select([master, wake_r], [], [], _POLL_S)
+            if wake_r in ready or master not in ready:
+                continue
+            try:
+                data = os.read(master, 4096)
+            except OSError:  # EIO: no slave open; cannot happen while we hold one
+                stop.wait(_POLL_S)
+                continue
+            for line in framer.feed(data):
+                if stop.is_set():
+                    break  # power is being cut: nothing more is executed
+                reply = self._handle(line)
+                if reply is not None and not stop.is_set():
+                    self._send(master, reply, stop)
+
+    def _send(self, master: int, reply: bytes, stop: threading.Event) -> None:
+        with self._lock:
+            fault = self._faults.popleft() if self._faults else None
+        if fault is Fault.DISCONNECT:
+            stop.set()  # serve no more; the helper thread closes the pty
+            self._cut_power_later(stop)
+            return
+        delay = self._reply_delay_s + (self._slow_reply_s if fault is Fault.SLOW_REPLY else 0)
+        if delay and stop.wait(delay):
+            return
+        if fault is Fault.DROP_REPLY:
+            return
+        if fault is Fault.CORRUPT_BYTE:
+            corrupt = bytearray(reply)
+            corrupt[1 + (len(reply) - 5) // 2] ^= 0x01  # a payload byte, never sigil/newline
+            reply = bytes(corrupt)
+        view = memoryview(reply)
+        while view and not stop.is_set():
+            try:
+                view = view[os.write(master, view) :]
+            except BlockingIOError:
+                select.select([], [master], [], _POLL_S)
+            except OSError:
+                return
+
+    def _handle(self, line: bytes) -> bytes | None:
+        """Execute one request line; return the encoded reply, or None if unaddressable."""
+        with self._lock:
+            self._requests += 1
+        try:
+            request = decode_request(line)
+        except ProtocolError as exc:
+            if exc.seq is None:
+                return None
+            return encode_reply(Reply.failure(exc.seq, exc.code, str(exc)))
+        return encode_reply(self._execute(request))
+
+    def _execute(self, request: Request) -> Reply:
+        seq, command, args = request.seq, request.command, request.args
+        with self._lock:
+            if command is Command.PING:
+                return Reply(seq)
+            if command is Command.INFO:
+                return Reply(seq, (self._firmware, str(self._led_count)))
+            if command is Command.STATE:
+                levels = (str(level) for level in self._levels)
+                return Reply(seq, (format_mask(self._mask), *levels))
+            if command is Command.LEVEL:
+                index, level = args
+                if index >= self._led_count:
+                    return Reply.failure(
+                        seq, ErrorCode.OUT_OF_RANGE,
+                        f"LED {index} does not exist (0..{self._led_count - 1})",
+                    )
+                self._levels[index] = level
+                return Reply(seq)
+            mask = args[0] if command is Command.LEDS else 0
+            if mask >> self._led_count:
+                return Reply.failure(
+                    seq, ErrorCode.OUT_OF_RANGE,
+                    f"mask {format_mask(mask)} names LEDs beyond {self._led_count - 1}",
+                )
+            self._mask = mask
+            self._history.append((time.monotonic(), mask))
+            return Reply(seq, (format_mask(mask),))
+
+
+# -- remote control ---------------------------------------------------------------------
+
+CONTROL_COMMANDS = {
+    "ping": "answer true",
+    "lit": "mask of the LEDs lit now (int)",
+    "state": "mask, lit LEDs, levels, connected, device, port, requests, pending faults",
+    "history [N]": "the last N (default all) switches as [[time.monotonic(), mask], ...]",
+    "inject FAULT [COUNT] [after N]": "FAULT: drop_reply, corrupt_byte, slow_reply, disconnect",
+    "clear": "forget the faults not yet struck",
+    "disconnect": "pull the cable now",
+    "reconnect": "plug it back in (a new pty behind the link)",
+    "help": "the commands",
+}
+"""Commands of the control channel (one a line) and what they answer."""
+
+_MAX_CONTROL_LINE = 1024
+
+
+class EmulatorControlServer:
+    """Serves the control channel of a ``BoardEmulator`` on a UNIX stream socket.
+
+    Line protocol: the client sends one command a line (``CONTROL_COMMANDS``, words
+    separated by blanks, case-insensitive); the server answers each with one JSON line,
+    ``{"ok": true, "result": ...}`` or ``{"ok": false, "error": "..."}``. Several clients
+    may stay connected; one thread serves them all, so the emulator's lifecycle methods
+    are only ever called from that thread. Try it by hand with
+    ``socat - UNIX-CONNECT:PATH``.
+
+    Parameters
+    ----------
+    emulator : BoardEmulator
+        The started emulator to control.
+    path : str
+        Socket path. A stale socket there is replaced; any other existing file is an error.
+    """
+
+    def __init__(self, emulator: BoardEmulator, path: str) -> None:
+        self._emulator = emulator
+        self._path = path
+        self._listener: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._wake: tuple[int, int] | None = None
+
+    @property
+    def path(self) -> str:
+        return self._path
+
+    def start(self) -> None:
+        """Bind the socket and start serving. Raises ``BoardEmulatorError`` if it cannot."""
+        if self._thread is not None:
+            raise BoardEmulatorError("control server already started")
+        if os.path.lexists(self._path):
+            if not stat.S_ISSOCK(os.lstat(self._path).st_mode):
+                raise BoardEmulatorError(
+                    f"{self._path} exists and is not a socket; remove it or choose another "
+                    "control path")
+            os.unlink(self._path)
+        listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            listener.bind(self._path)
+            listener.listen(8)
+        except OSError as exc:
+            listener.close()
+            raise BoardEmulatorError(f"cannot serve the control socket {self._path}: {exc}") \
+                from exc
+        listener.setblocking(False)
+        self._listener = listener
+        self._wake = os.pipe()
+        self._thread = threading.Thread(target=self._serve, name="board-emulator-control")
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop serving, close every connection and remove the socket. Safe to call twice."""
+        if self._thread is not None:
+            assert self._wake is not None
+            os.write(self._wake[1], b"x")
+            self._thread.join()
+            self._thread = None
+        if self._wake is not None:
+            for fd in self._wake:
+                os.close(fd)
+            self._wake = None
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self._path)
+
+    def __enter__(self) -> EmulatorControlServer:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+    def _serve(self) -> None:
+        assert self._listener is not None and self._wake is not None
+        buffers: dict[socket.socket, bytearray] = {}
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._listener, selectors.EVENT_READ)
+            selector.register(self._wake[0], selectors.EVENT_READ)
+            try:
+                while True:
+                    for key, _ in selector.select():
+                        if key.fileobj == self._wake[0]:
+                            return
+                        if key.fileobj is self._listener:
+                            with contextlib.suppress(BlockingIOError):
+                                conn, _ = self._listener.accept()
+                                conn.setblocking(True)
+                                conn.settimeout(1.0)  # a client that never reads is dropped
+                                buffers[conn] = bytearray()
+                                selector.register(conn, selectors.EVENT_READ)
+                            continue
+                        conn = key.fileobj
+                        assert isinstance(conn, socket.socket)
+                        if not self._serve_client(conn, buffers[conn]):
+                            selector.unregister(conn)
+                            del buffers[conn]
+                            conn.close()
+            finally:
+                for conn in buffers:
+                    conn.close()
+
+    def _serve_client(self, conn: socket.socket, buffer: bytearray) -> bool:
+        """Read what the client sent, answer complete lines; False when it is gone."""
+        try:
+            data = conn.recv(4096)
+        except OSError:
+            return False
+        if not data:
+            return False
+        buffer.extend(data)
+        while b"\n" in buffer:
+            line, _, rest = bytes(buffer).partition(b"\n")
+            buffer[:] = rest
+            answer = self.execute(line.decode("utf-8", errors="replace"))
+            try:
+                conn.sendall(json.dumps(answer).encode("ascii") + b"\n")
+            except OSError:
+                return False
+        return len(buffer) <= _MAX_CONTROL_LINE
+
+    def execute(self, line: str) -> dict[str, Any]:
+        """Run one command line; return the answer object (never raises)."""
+        words = line.strip().lower().split()
+        if not words:
+            return {"ok": False, "error": "empty command; send 'help'"}
+        try:
+            return {"ok": True, "result": self._run(words[0], words[1:])}
+        except (BoardEmulatorError, ValueError, OSError) as exc:
+            return {"ok": False, "error": str(exc)}
+        except Exception as exc:  # the control thread must survive any command
+            return {"ok": False, "error": f"{' '.join(words)!r} failed: "
+                                          f"{type(exc).__name__}: {exc}"}
+
+    def _run(self, command: str, args: list[str]) -> object:
+        emu = self._emulator
+        if command == "ping" and not args:
+            return True
+        if command == "lit" and not args:
+            return emu.lit_mask
+        if command == "state" and not args:
+            return {"mask": emu.lit_mask, "lit": list(emu.lit_leds()),
+                    "levels": list(emu.levels), "connected": emu.connected,
+                    "device": emu.device, "port": emu.port, "requests": emu.request_count,
+                    "pending_faults": emu.pending_faults}
+        if command == "history" and len(args) <= 1:
+            history = emu.history
+            if args:
+                history = history[-int(args[0]):] if int(args[0]) > 0 else []
+            return [[t, mask] for t, mask in history]
+        if command == "inject" and 1 <= len(args) <= 4:
+            return self._inject(args)
+        if command == "clear" and not args:
+            emu.clear_faults()
+            return True
+        if command == "disconnect" and not args:
+            emu.disconnect()
+            return True
+        if command == "reconnect" and not args:
+            emu.reconnect()
+            return True
+        if command == "help" and not args:
+            return CONTROL_COMMANDS
+        raise ValueError(f"unknown command {' '.join([command, *args])!r}; send 'help'")
+
+    def _inject(self, args: list[str]) -> list[str]:
+        names = {f.value: f for f in Fault}
+        if args[0] not in names:
+            raise ValueError(f"unknown fault {args[0]!r}; one of {', '.join(names)}")
+        rest = args[1:]
+        after = 0
+        if len(rest) >= 2 and rest[-2] == "after":
+            after = int(rest[-1])
+            rest = rest[:-2]
+        if len(rest) > 1:
+            raise ValueError("usage: inject FAULT [COUNT] [after N]")
+        self._emulator.inject(names[args[0]], int(rest[0]) if rest else 1, after=after)
+        return self._emulator.pending_faults
+
+
+class BoardEmulatorControl:
+    """Client of an ``EmulatorControlServer`` (``board_emulator --control PATH``).
+
+    Connects on first use and again after a failure (the emulator may have been
+    restarted). Safe to use from several threads. Every failure to reach the emulator or
+    a refused command raises ``BoardEmulatorError``.
+
+    Parameters
+    ----------
+    path : str
+        The control socket.
+    timeout_s : float
+        How long one command may take.
+    """
+
+    def __init__(self, path: str, *, timeout_s: float = 2.0) -> None:
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+        self._path = path
+        self._timeout_s = timeout_s
+        self._sock: socket.socket | None = None
+        self._reader: Any = None
+        self._lock = threading.Lock()
+
+    @property
+    def path(self) -> str:
+        return self._path
+
+    def close(self) -> None:
+        """Close the connection. Safe to call twice."""
+        with self._lock:
+            self._close()
+
+    def __enter__(self) -> BoardEmulatorControl:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def command(self, line: str) -> Any:
+        """Send one command line; return its result."""
+        with self._lock:
+            for attempt in range(2):
+                try:
+                    if self._sock is None:
+                        self._connect()
+                    assert self._sock is not None
+                    self._sock.sendall(line.strip().encode("ascii") + b"\n")
+                    raw = self._reader.readline(1 << 22)
+                    if not raw.endswith(b"\n"):
+                        raise ConnectionError("the emulator closed the control connection")
+                    break
+                except (OSError, ValueError) as exc:
+                    self._close()
+                    if attempt:
+                        raise BoardEmulatorError(
+                            f"cannot reach the board emulator's control socket {self._path} "
+                            f"({exc}); start `board_emulator --control {self._path}`") from exc
+        answer = json.loads(raw)
+        if not answer.get("ok"):
+            raise BoardEmulatorError(f"board emulator refused {line.strip()!r}: "
+                                     f"{answer.get('error')}")
+        return answer.get("result")
+
+    def ping(self) -> bool:
+        return bool(self.command("ping"))
+
+    def lit_mask(self) -> int:
+        """Mask of the LEDs physically lit now."""
+        return int(self.command("lit"))
+
+    def lit_leds(self) -> tuple[int, ...]:
+        """Indices of the LEDs physically lit now, ascending."""
+        return mask_to_indices(self.lit_mask())
+
+    def state(self) -> dict[str, Any]:
+        return dict(self.command("state"))
+
+    def history(self, last: int | None = None) -> list[tuple[float, int]]:
+        """(time.monotonic(), mask) of the last switches; monotonic time is system-wide."""
+        result = self.command("history" if last is None else f"history {int(last)}")
+        return [(float(t), int(mask)) for t, mask in result]
+
+    def inject(self, fault: Fault | str, count: int = 1, *, after: int = 0) -> list[str]:
+        """As ``BoardEmulator.inject``; returns the pending faults."""
+        name = fault.value if isinstance(fault, Fault) else str(fault).lower()
+        return list(self.command(f"inject {name} {int(count)} after {int(after)}"))
+
+    def clear_faults(self) -> None:
+        self.command("clear")
+
+    def disconnect(self) -> None:
+        self.command("disconnect")
+
+    def reconnect(self) -> None:
+        self.command("reconnect")
+
+    def _connect(self) -> None:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.settimeout(self._timeout_s)
+        try:
+            sock.connect(self._path)
+        except OSError:
+            sock.close()
+            raise
+        self._sock = sock
+        self._reader = sock.makefile("rb")
+
+    def _close(self) -> None:
+        if self._reader is not None:
+            with contextlib.suppress(OSError):
+                self._reader.close()
+            self._reader = None
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.close()
+            self._sock = None
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``board_emulator``: serve a board on a pty until SIGINT/SIGTERM."""
+    parser = argparse.ArgumentParser(
+        prog="board_emulator",
+        description="Emulate the fingerps LED board on a pseudo-terminal.",
+    )
+    parser.add_argument("--link", default=DEFAULT_LINK_PATH,
+                        help=f"symlink to the pty a client opens (default {DEFAULT_LINK_PATH})")
+    parser.add_argument("--leds", type=int, default=7, help="number of LEDs (default 7)")
+    parser.add_argument("--reply-delay", type=float, default=0.0, metavar="S",
+                        help="delay before every reply in seconds (default 0)")
+    parser.add_argument("--slow-reply", type=float, default=0.075, metavar="S",
+                        help="extra delay of a reply hit by slow_reply (default 0.075)")
+    parser.add_argument("--control", default=None, metavar="PATH",
+                        help="serve the control channel on this UNIX socket: inject faults, "
+                             "disconnect, read the lit LEDs (send 'help')")
+    options = parser.parse_args(argv)
+
+    stop = threading.Event()
+
+    def _on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        emulator = BoardEmulator(options.leds, reply_delay_s=options.reply_delay,
+                                 slow_reply_s=options.slow_reply, link_path=options.link)
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(emulator)
+            control = ""
+            if options.control:
+                stack.enter_context(EmulatorControlServer(emulator, options.control))
+                control = f", control {options.control}"
+            print(f"board_emulator: {options.leds} LEDs on {emulator.device}, "
+                  f"link {emulator.port}{control}; Ctrl-C to stop", flush=True)
+            while not stop.wait(0.5):
+                pass
+    except (FingerpsDriverError, ValueError, OSError) as exc:
+        print(f"board_emulator: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,352 @@
+"""Serial client of the LED board (pyserial), speaking ``board_protocol``.
+
+Every command is one request/reply transaction. A dropped, late or corrupted reply (and
+a ``CRC``/``FRAME`` error from the board) is recovered by discarding the input and
+resending the command with a new sequence number, up to ``retries`` times; all commands
+are idempotent, so a resend is safe even if the first attempt took effect.
+"""
+
+from __future__ import annotations
+
+import errno
+import select
+import termios
+import time
+from dataclasses import dataclass
+from types import TracebackType
+
+import serial
+
+from fingerps_driver.board.board_protocol import (
+    MAX_LEDS,
+    MAX_LEVEL,
+    REPLY_SIGIL,
+    Command,
+    ErrorCode,
+    LineFramer,
+    ProtocolError,
+    Reply,
+    Request,
+    decode_reply,
+    encode_request,
+    format_mask,
+    next_seq,
+    parse_mask,
+    parse_uint,
+)
+from fingerps_driver.errors import FingerpsDriverError
+
+
+class BoardError(FingerpsDriverError):
+    """Root of the LED-board client errors."""
+
+
+class BoardNotFoundError(BoardError):
+    """The serial port does not exist."""
+
+
+class BoardDisconnectedError(BoardError):
+    """The port vanished or failed while in use (cable pulled, board reset)."""
+
+
+class BoardTimeoutError(BoardError):
+    """No valid reply within the timeout, on every attempt."""
+
+
+class BoardProtocolError(BoardError):
+    """Replies were garbled on every attempt, or a reply made no sense."""
+
+
+class BoardRejectedError(BoardError):
+    """The board answered ERR (unknown command, bad argument, LED out of range).
+
+    Attributes
+    ----------
+    code : ErrorCode
+        The board's error code.
+    """
+
+    def __init__(self, message: str, code: ErrorCode) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class BoardInfo:
+    """Answer to ``INFO``."""
+
+    firmware: str
+    led_count: int
+
+
+@dataclass(frozen=True)
+class BoardState:
+    """Answer to ``STATE``: the mask lit now and the drive level 0..255 of every LED."""
+
+    mask: int
+    levels: tuple[int, ...]
+
+
+class _RetryableError(Exception):
+    """One attempt failed in a way a resend may cure."""
+
+    def __init__(self, error: type[BoardError], message: str) -> None:
+        super().__init__(message)
+        self.error = error
+
+
+class LedBoard:
+    """Client of the LED board on a serial port.
+
+    Parameters
+    ----------
+    port : str
+        Serial device, e.g. ``/dev/ttyACM0`` or the emulator's ``/tmp/fingerps_board``.
+    baudrate : int
+        Line speed (ignored by USB-CDC boards and ptys).
+    timeout_s : float
+        How long one attempt waits for its reply.
+    retries : int
+        Resends after the first attempt (so ``1 + retries`` attempts at most).
+    """
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 115200,
+        timeout_s: float = 0.05,
+        retries: int = 2,
+    ) -> None:
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+        if retries < 0:
+            raise ValueError(f"retries must be >= 0, got {retries}")
+        self._port = port
+        self._baudrate = baudrate
+        self._timeout_s = timeout_s
+        self._retries = retries
+        self._serial: serial.Serial | None = None
+        self._framer = LineFramer(REPLY_SIGIL)
+        self._seq = 0
+        self._acknowledged: int | None = None
+        self.resends = 0
+        """Number of resends so far (diagnostics)."""
+
+    @property
+    def port(self) -> str:
+        return self._port
+
+    @property
+    def is_open(self) -> bool:
+        return self._serial is not None
+
+    @property
+    def acknowledged_mask(self) -> int | None:
+        """The LED mask the board last acknowledged (``set_leds``/``all_off``); None when
+        unknown (not open, just opened, or a switch failed)."""
+        return self._acknowledged
+
+    def open(self) -> None:
+        """Open the port. Raises ``BoardNotFoundError`` if it does not exist."""
+        if self._serial is not None:
+            return
+        try:
+            ser = serial.Serial(
+                self._port, baudrate=self._baudrate, timeout=0, write_timeout=self._timeout_s
+            )
+        except (serial.SerialException, OSError) as exc:
+            code = getattr(exc, "errno", None)
+            if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO):
+                raise BoardNotFoundError(
+                    f"LED board port {self._port} does not exist: plug the board in (or "
+                    f"start `board_emulator --link {self._port}`) and check the port "
+                    f"parameter"
+                ) from exc
+            if code in (errno.EACCES, errno.EPERM):
+                raise BoardError(
+                    f"no permission to open LED board port {self._port}: add the user to "
+                    f"the 'dialout' group and log in again"
+                ) from exc
+            raise BoardDisconnectedError(
+                f"cannot open LED board port {self._port} ({exc}); check the cable and "
+                f"that no other program holds the port"
+            ) from exc
+        try:
+            ser.reset_input_buffer()
+        except (serial.SerialException, OSError, termios.error) as exc:
+            ser.close()
+            raise BoardDisconnectedError(
+                f"LED board port {self._port} failed right after opening ({exc})"
+            ) from exc
+        self._serial = ser
+
+    def close(self) -> None:
+        """Close the port. Safe to call twice; never raises on a vanished port."""
+        ser, self._serial = self._serial, None
+        self._acknowledged = None
+        if ser is not None:
+            try:
+                ser.close()
+            except (serial.SerialException, OSError, termios.error):
+                pass
+
+    def __enter__(self) -> LedBoard:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- commands --------------------------------------------------------------------
+
+    def ping(self) -> float:
+        """Round trip a ``PING``; return its duration in seconds (including retries)."""
+        start = time.perf_counter()
+        self._transact(Command.PING)
+        return time.perf_counter() - start
+
+    def info(self) -> BoardInfo:
+        """Firmware token and LED count."""
+        reply = self._transact(Command.INFO)
+        if len(reply.values) != 2:
+            raise BoardProtocolError(f"INFO reply {reply.values} is not <firmware>,<count>")
+        return BoardInfo(reply.values[0], self._uint(reply.values[1], MAX_LEDS))
+
+    def state(self) -> BoardState:
+        """Mask lit now and every LED's level."""
+        reply = self._transact(Command.STATE)
+        if not reply.values:
+            raise BoardProtocolError("STATE reply holds no mask")
+        levels = tuple(self._uint(v, MAX_LEVEL) for v in reply.values[1:])
+        return BoardState(self._mask(reply.values[0]), levels)
+
+    def set_leds(self, mask: int) -> int:
+        """Light exactly the LEDs in ``mask``; return the mask the board acknowledged.
+
+        Raises ``BoardProtocolError`` if the acknowledged mask differs from ``mask``.
+        """
+        format_mask(mask)  # ValueError on a programming error
+        self._acknowledged = None
+        reply = self._transact(Command.LEDS, (mask,))
+        acked = self._single_mask(reply)
+        self._acknowledged = acked
+        if acked != mask:
+            raise BoardProtocolError(
+                f"board lit LED mask {format_mask(acked)} instead of {format_mask(mask)}"
+            )
+        return acked
+
+    def all_off(self) -> None:
+        """Switch every LED off (acknowledged mask must be 0)."""
+        self._acknowledged = None
+        acked = self._single_mask(self._transact(Command.OFF))
+        self._acknowledged = acked
+        if acked != 0:
+            raise BoardProtocolError(f"board reports LED mask {format_mask(acked)} after OFF")
+
+    def set_level(self, index: int, level: int) -> None:
+        """Set the drive level 0..255 of LED ``index`` (0-based)."""
+        if not 0 <= level <= MAX_LEVEL:
+            raise ValueError(f"level {level} outside 0..{MAX_LEVEL}")
+        if not 0 <= index <= MAX_LEVEL:
+            raise ValueError(f"LED index {index} outside 0..{MAX_LEVEL}")
+        self._transact(Command.LEVEL, (index, level))
+
+    # -- transport -------------------------------------------------------------------
+
+    def _transact(self, command: Command, args: tuple[int, ...] = ()) -> Reply:
+        ser = self._serial
+        if ser is None:
+            raise BoardError(f"LED board port {self._port} is not open; call open() first")
+        failure: _RetryableError | None = None
+        for attempt in range(1 + self._retries):
+            if attempt:
+                self.resends += 1
+            self._seq = next_seq(self._seq)
+            request = Request(self._seq, command, args)
+            try:
+                reply = self._attempt(ser, request)
+            except _RetryableError as exc:
+                failure = exc
+                continue
+            if reply.ok:
+                return reply
+            assert reply.error is not None
+            if reply.error.retryable:
+                failure = _RetryableError(
+                    BoardProtocolError, f"board reported {reply.error.value}: {reply.message}"
+                )
+                continue
+            raise BoardRejectedError(
+                f"LED board rejected {command.value}{list(args) if args else ''}: "
+                f"{reply.error.value} {reply.message}",
+                reply.error,
+            )
+        assert failure is not None
+        raise failure.error(
+            f"LED board on {self._port} failed {command.value} after {1 + self._retries} "
+            f"attempt(s), last: {failure}; check the cable and the board's power"
+        )
+
+    def _attempt(self, ser: serial.Serial, request: Request) -> Reply:
+        """Send once and wait for the matching reply; ``_RetryableError`` if a resend may help."""
+        deadline = time.monotonic() + self._timeout_s
+        try:
+            ser.reset_input_buffer()
+            self._framer.reset()
+            ser.write(encode_request(request))
+            while True:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise _RetryableError(BoardTimeoutError, f"no reply within {self._timeout_s} s")
+                ready, _, _ = select.select([ser.fileno()], [], [], remaining)
+                if not ready:
+                    continue
+                for line in self._framer.feed(ser.read(4096)):
+                    try:
+                        reply = decode_reply(line)
+                    except ProtocolError as exc:
+                        raise _RetryableError(BoardProtocolError, f"garbled reply: {exc}") from None
+                    if reply.seq == request.seq:
+                        return reply
+                    # else: stale reply to an earlier attempt, keep waiting
+        except serial.SerialTimeoutException as exc:
+            raise _RetryableError(BoardTimeoutError, f"write timed out ({exc})") from None
+        except (serial.SerialException, OSError, termios.error, ValueError) as exc:
+            self.close()
+            raise BoardDisconnectedError(
+                f"LED board port {self._port} vanished ({_describe(exc)}); reconnect the "
+                f"board, then open() again"
+            ) from exc
+
+    @staticmethod
+    def _uint(token: str, maximum: int) -> int:
+        try:
+            return parse_uint(token, maximum=maximum)
+        except ProtocolError as exc:
+            raise BoardProtocolError(f"bad value in reply: {exc}") from None
+
+    @staticmethod
+    def _mask(token: str) -> int:
+        try:
+            return parse_mask(token)
+        except ProtocolError as exc:
+            raise BoardProtocolError(f"bad mask in reply: {exc}") from None
+
+    def _single_mask(self, reply: Reply) -> int:
+        if len(reply.values) != 1:
+            raise BoardProtocolError(f"expected one mask in the reply, got {reply.values}")
+        return self._mask(reply.values[0])
+
+
+def _describe(exc: BaseException) -> str:
+    """Readable text of an I/O exception (``termios.error`` prints as a bare tuple)."""
+    if isinstance(exc, termios.error) and len(exc.args) == 2:
+        return f"[Errno {exc.args[0]}] {exc.args[1]}"
+    return str(exc) or type(exc).__name__

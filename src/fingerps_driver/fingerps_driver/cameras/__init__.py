@@ -1,0 +1,1 @@
+"""Cameras: the base class and its checks, simulated, folder and OpenCV backends; calibration."""

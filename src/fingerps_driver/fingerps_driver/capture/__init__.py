@@ -1,0 +1,1 @@
+"""Capturing a burst: the plan (order, exposures, levels), the sequencing, the rate."""

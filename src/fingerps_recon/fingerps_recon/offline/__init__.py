@@ -1,0 +1,1 @@
+"""Offline work without a graph: DiLiGenT folders, reconstruction and tuning sweeps."""

@@ -1,0 +1,1 @@
+"""Photometric stereo: the paper's reflectance models, solvers, lights and normals (no ROS)."""

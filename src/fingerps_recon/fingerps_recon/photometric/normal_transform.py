@@ -1,0 +1,121 @@
+"""Ridge enhancement of a normal map (paper Eq. 12, NOTES §4).
+
+n' = n + k (n - normalize(sum_{j in w x w} n_j)), then renormalised: each normal is pushed
+away from the mean direction of its w x w neighbourhood, which amplifies the angle between
+neighbouring normals and so the visual contrast of the ridges. Paper: w = 7, k = 2.5.
+It is for display, applied after the normals are estimated, not for integration.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from fingerps_recon.errors import FingerpsReconError
+
+
+def enhance_ridges(
+    normals: np.ndarray,
+    *,
+    w: int = 7,
+    k: float = 2.5,
+    mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """Amplify the differences between neighbouring normals (paper Eq. 12).
+
+    The patch sum counts only neighbours inside the image and the mask (normalised
+    convolution: outside neighbours are zero, and the sum is normalised to a direction, so
+    no division by the count is needed).
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals (PS frame); zero vectors mark pixels without a normal.
+    w : int
+        Side of the square patch, odd, >= 3.
+    k : float
+        Gain, >= 0; k = 0 returns the (renormalised) input.
+    mask : (H, W) bool, optional
+        Pixels to enhance and to use as neighbours; outside it the output is zero.
+
+    Returns
+    -------
+    enhanced : (H, W, 3) float
+        Unit normals (zero where the input is zero or outside the mask); float64 if
+        ``normals`` is float64, else float32. The input is not modified.
+    """
+    n = np.asarray(normals)
+    if n.ndim != 3 or n.shape[2] != 3:
+        raise FingerpsReconError(f"normals must have shape (H, W, 3), got {n.shape}")
+    if isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 3 or w % 2 == 0:
+        raise FingerpsReconError(f"w must be an odd integer >= 3, got {w!r}")
+    if not (np.isfinite(k) and k >= 0):
+        raise FingerpsReconError(f"k must be a finite number >= 0, got {k!r}")
+    dtype = np.float64 if n.dtype == np.float64 else np.float32
+    h, w_img = n.shape[:2]
+    enhanced = np.zeros((h, w_img, 3), dtype=dtype)
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != n.shape[:2] or m.dtype != bool:
+            raise FingerpsReconError(
+                f"mask must be a bool array of shape {n.shape[:2]}, got {m.shape} {m.dtype}"
+            )
+        # Outside the mask's bounding box every normal is zero and stays zero; the box
+        # filter's zero border at the box's sides sees the same zeros.
+        box = _bounding_box(m)
+        if box is None:
+            return enhanced
+        m = m[box]
+    else:
+        box = (slice(0, h), slice(0, w_img))
+        m = None
+    x, y, z = cv2.split(np.ascontiguousarray(n[box], dtype=dtype))  # new planes
+    # Pixels without a normal (outside the mask, zero or not finite) are zero: they are no
+    # neighbours (normalised convolution: the sum is normalised to a direction, so no
+    # division by the count is needed) and give zero output.
+    with np.errstate(invalid="ignore"):
+        finite = np.abs(x + y + z) < np.inf  # False for NaN and inf
+    keep = finite if m is None else finite & m
+    if not keep.all():
+        for c in (x, y, z):
+            c *= keep
+        if not finite.all():
+            for c in (x, y, z):
+                c[~finite] = 0  # NaN * 0 is NaN
+    has_normal = (x != 0) | (y != 0) | (z != 0)
+
+    size = (int(w), int(w))
+    sx, sy, sz = (
+        cv2.boxFilter(c, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        for c in (x, y, z)
+    )
+    # n' = (1 + k) n - k s / |s|; where no neighbour has a normal (s = 0) the mean direction
+    # is n itself, so n' = n up to the scale (1 + k), which the normalisation removes.
+    gain = dtype(k)
+    inv_s = _inverse_norm(sx, sy, sz)
+    inv_s *= gain
+    one_k = dtype(1.0 + k)
+    ex = one_k * x - inv_s * sx
+    ey = one_k * y - inv_s * sy
+    ez = one_k * z - inv_s * sz
+    inv_e = _inverse_norm(ex, ey, ez)
+    inv_e[~has_normal] = 0  # no normal in, none out
+    for c in (ex, ey, ez):
+        c *= inv_e
+    enhanced[box] = cv2.merge((ex, ey, ez))
+    return enhanced
+
+
+def _inverse_norm(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """1 / |(x, y, z)| per pixel, 0 where the vector is zero."""
+    norm = np.sqrt(x * x + y * y + z * z)
+    return np.divide(1, norm, out=np.zeros_like(norm), where=norm > 0)
+
+
+def _bounding_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """Slices of the smallest rectangle holding every mask pixel; None for an empty mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)

@@ -1,0 +1,480 @@
+"""One burst in, normals, depth and points out: the reconstruction pipeline without ROS.
+
+Steps: dark-frame subtraction; the lighting field; the finger mask; Lambertian photometric
+stereo (paper Eq. 3); optionally the simplified Hanrahan-Krueger solver (Eq. 4-7)
+initialised from it; ridge enhancement (Eq. 12) on a copy; integration of the normals into
+depth; back-projection into points in the optical frame.
+
+Two light models:
+
+- distant lights (the paper's): one direction per LED; the flat field (Eq. 11) divides each
+  image by its portion map p_k, and the LEDs' relative intensities scale the rows of L;
+- near lights, when the LED positions are known: per pixel, the direction from the point
+  where the pixel's ray meets the plane z = working distance to each LED
+  (:mod:`fingerps_recon.photometric.pixel_rays`), and per-pixel irradiance from the white target
+  (W_k, rebuilt from the portion maps and relative intensities, divided by the target's
+  cosine l_k . z) instead of dividing the images. On the simulated rig this halves the HK
+  solver's error (bench/bench_recon_accuracy.py).
+
+Views are perspective (per pixel, from the camera matrix) or orthographic (0, 0, 1).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.photometric.finger_mask import finger_mask
+from fingerps_recon.photometric.flat_field import flat_field_gain
+from fingerps_recon.photometric.lambertian import solve_lambertian
+from fingerps_recon.photometric.normal_transform import enhance_ridges
+from fingerps_recon.photometric.pixel_rays import near_light_directions_ps, view_directions_ps
+from fingerps_recon.surface.integration import (
+    depth_to_points,
+    integrate_normals,
+    integrate_normals_perspective,
+)
+
+# Smallest cosine between a near light and the white target's normal used to turn the
+# target's brightness into irradiance (a steeper light would amplify the target's noise).
+_MIN_TARGET_COSINE = 0.05
+# A calibration's light directions must be unit vectors to this tolerance.
+_UNIT_TOLERANCE = 1e-3
+# Smallest ratio of the light matrix's singular values (smallest / largest) accepted: below
+# it the directions are (nearly) coplanar or parallel and the normals are not determined
+# (the simulated rig's ratio is 0.31).
+_MIN_LIGHT_CONDITION = 0.02
+
+
+class NoFingerError(FingerpsReconError):
+    """The burst shows nothing to reconstruct (the finger mask selects nothing)."""
+
+
+class Model(Enum):
+    """Reflectance model the normals are solved under."""
+
+    LAMBERT = "lambert"   # Lambertian photometric stereo (paper Eq. 3)
+    HK = "hk"             # simplified Hanrahan-Krueger model (paper Eq. 4-7)
+
+
+class Projection(Enum):
+    """Camera model for the view directions, the integration and the points."""
+
+    PERSPECTIVE = "perspective"     # pinhole camera with the camera matrix K
+    ORTHOGRAPHIC = "orthographic"   # pixel size = working distance / fx
+
+
+@dataclass(frozen=True)
+class ReconstructionOptions:
+    """Options of :func:`reconstruct`; defaults are the simulated rig's."""
+
+    model: Model = Model.LAMBERT
+    hk_iterations: int = 5
+    """Converged on the simulated finger at 5 (bench/bench_recon_accuracy.py)."""
+    projection: Projection = Projection.PERSPECTIVE
+    mask_threshold: float = 0.15
+    shadow_fraction: float = 0.02
+    """Values at or below this fraction of full scale count as shadow (left out)."""
+    saturation_fraction: float = 0.995
+    """Values at or above this fraction of full scale count as saturated (left out)."""
+    enhance: bool = False
+    w: int = 7
+    k: float = 2.5
+    working_distance_m: float = 0.09
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """Result of :func:`reconstruct`. Normals are unit vectors in the PS frame."""
+
+    normals_ps: np.ndarray          # (H, W, 3) float32, zeros outside ``mask``
+    enhanced_ps: np.ndarray | None  # (H, W, 3) float32 after Eq. 12, when asked for
+    albedo: np.ndarray              # (H, W) float32, zeros outside ``mask``
+    mask: np.ndarray                # (H, W) bool: finger pixels with a valid normal
+    depth_m: np.ndarray             # (H, W) float32, optical z in metres, NaN outside
+    height_m: np.ndarray            # (H, W) float32, relief towards the camera, NaN outside
+    points_optical: np.ndarray      # (N, 3) float32, metres
+    point_albedo: np.ndarray        # (N,) float32
+    hk_scale: float | None = None   # the HK model's fitted global scale A
+    residual: float | None = None   # Lambertian fit: rms(I - rho n.l) / mean(I), valid pixels
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PreparedCalibration:
+    """What a reconstruction needs that depends only on the calibration, the camera and the
+    image size: computed once by :func:`prepare_calibration` when one of them changes, then
+    used by every burst (:func:`reconstruct_prepared`).
+
+    Attributes
+    ----------
+    shape : (H, W)
+        Image size it was prepared for.
+    camera_matrix : (3, 3) float64
+        Intrinsics K, pixels.
+    lights : (K, 3) float64 or (K, H, W, 3) float32
+        Unit light directions, PS frame: distant lights, or per pixel (near lights).
+    light_power : None, (K,) float64 or (K, H, W) float32
+        Relative light intensities, or the per-pixel irradiance of the near lights.
+    flat_gain : None or (K, H, W) float32
+        Distant lights with a flat field: 1 / max(p_k, min portion), the factor of Eq. 11.
+    views : (3,) or (H, W, 3) float32
+        Unit directions towards the camera, PS frame: orthographic or per pixel.
+    """
+
+    shape: tuple[int, int]
+    camera_matrix: np.ndarray
+    lights: np.ndarray
+    light_power: np.ndarray | None
+    flat_gain: np.ndarray | None
+    views: np.ndarray
+
+    @property
+    def light_count(self) -> int:
+        return int(self.lights.shape[0])
+
+
+def prepare_calibration(
+    lights_ps: np.ndarray,
+    *,
+    camera_matrix: np.ndarray,
+    shape: tuple[int, int],
+    intensities: np.ndarray | None = None,
+    portions: np.ndarray | None = None,
+    led_positions_optical: np.ndarray | None = None,
+    options: ReconstructionOptions = ReconstructionOptions(),
+) -> PreparedCalibration:
+    """Prepare a calibration for bursts of ``shape`` (see :func:`reconstruct` for the
+    parameters): the near-light directions and irradiance, the flat-field gain (Eq. 11) and
+    the view directions. Raises ``FingerpsReconError`` on inconsistent or degenerate inputs
+    (a camera matrix that is not finite with fx, fy > 0; :func:`check_calibration`;
+    :func:`check_portions`; LEDs that do not span 3D from the image centre), so that a bad
+    calibration is refused where it is used instead of giving empty reconstructions."""
+    h, w = (int(v) for v in shape)
+    if h < 1 or w < 1:
+        raise FingerpsReconError(f"image size must be at least 1 x 1, got {w} x {h}")
+    k_matrix = np.asarray(camera_matrix, dtype=np.float64)
+    if (k_matrix.shape != (3, 3) or not np.isfinite(k_matrix).all()
+            or not (k_matrix[0, 0] > 0 and k_matrix[1, 1] > 0)
+            or not np.array_equal(k_matrix[2], [0.0, 0.0, 1.0])):
+        raise FingerpsReconError(
+            "the camera matrix must be a finite 3x3 K with fx, fy > 0 and last row 0 0 1 (got "
+            f"{np.array2string(k_matrix.reshape(-1), precision=4, max_line_width=10**6)}); "
+            "calibrate the camera (camera_info)")
+    lights = np.asarray(lights_ps, dtype=np.float64)
+    check_calibration(lights, intensities=intensities,
+                      led_positions_optical=led_positions_optical)
+    count = lights.shape[0]
+    if portions is not None:
+        if np.shape(portions) != (count, h, w):
+            raise FingerpsReconError(
+                f"flat-field maps {np.shape(portions)} do not fit the images {(count, h, w)}; "
+                "recalibrate the flat field for this camera mode")
+        check_portions(portions)
+    light_power = None if intensities is None else np.asarray(intensities, dtype=np.float64)
+    flat_gain = None
+    if led_positions_optical is not None:
+        _check_near_lights(np.asarray(led_positions_optical, dtype=np.float64), k_matrix,
+                           (h, w), options.working_distance_m)
+        lights = near_light_directions_ps(
+            led_positions_optical, camera_matrix=k_matrix, shape=(h, w),
+            working_distance_m=options.working_distance_m)
+        if portions is not None:
+            light_power = _irradiance(portions, light_power, lights)
+    elif portions is not None:
+        flat_gain = flat_field_gain(portions)
+    views = (view_directions_ps(k_matrix, (h, w))
+             if options.projection is Projection.PERSPECTIVE
+             else np.array([0.0, 0.0, 1.0], dtype=np.float32))
+    return PreparedCalibration(shape=(h, w), camera_matrix=k_matrix, lights=lights,
+                               light_power=light_power, flat_gain=flat_gain, views=views)
+
+
+def reconstruct(
+    images: np.ndarray,
+    *,
+    lights_ps: np.ndarray,
+    camera_matrix: np.ndarray,
+    full_scale: float,
+    intensities: np.ndarray | None = None,
+    portions: np.ndarray | None = None,
+    dark: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    led_positions_optical: np.ndarray | None = None,
+    options: ReconstructionOptions = ReconstructionOptions(),
+) -> Reconstruction:
+    """Reconstruct one burst: :func:`prepare_calibration`, then :func:`reconstruct_prepared`
+    (a stream of bursts with one calibration should prepare it once).
+
+    Parameters
+    ----------
+    images : (K, H, W) uint8/uint16/float
+        One image per LED, in the order of ``lights_ps``. Not modified.
+    lights_ps : (K, 3) float
+        Unit light directions in the PS frame (the light calibration); used as distant
+        lights when ``led_positions_optical`` is not given.
+    camera_matrix : (3, 3) float
+        Intrinsics K, pixels.
+    full_scale : float
+        The sensor's largest value (255, 4095, ...), for the shadow and saturation levels.
+    intensities : (K,) float, optional
+        Relative LED intensities (flat-field calibration); all equal when not given.
+    portions : (K, H, W) float, optional
+        Flat-field portion maps p_k (Eq. 11); no lighting-field correction when not given.
+    dark : (H, W), optional
+        An all-LEDs-off frame subtracted from every image.
+    mask : (H, W) bool, optional
+        The object's pixels; found from the images (the finger mask) when not given.
+    led_positions_optical : (K, 3) float, optional
+        LED positions in metres, optical frame: switches to the near-light model.
+    """
+    t0 = time.perf_counter()
+    if np.ndim(images) != 3:
+        raise FingerpsReconError(
+            f"a burst must be K images of one size, (K, H, W); got shape {np.shape(images)}")
+    prepared = prepare_calibration(
+        lights_ps, camera_matrix=camera_matrix, shape=np.shape(images)[1:],
+        intensities=intensities, portions=portions,
+        led_positions_optical=led_positions_optical, options=options)
+    result = reconstruct_prepared(images, prepared, full_scale=full_scale, dark=dark,
+                                  mask=mask, options=options)
+    result.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return result
+
+
+def reconstruct_prepared(
+    images: np.ndarray,
+    prepared: PreparedCalibration,
+    *,
+    full_scale: float,
+    dark: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    options: ReconstructionOptions = ReconstructionOptions(),
+) -> Reconstruction:
+    """Reconstruct one burst with a calibration prepared by :func:`prepare_calibration`
+    (with the same ``options``); the other parameters as :func:`reconstruct`."""
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    stack = _checked_stack(images, prepared.light_count, full_scale=full_scale,
+                           shadow_fraction=options.shadow_fraction)
+    shape = stack.shape[1:]
+    if shape != prepared.shape:
+        raise FingerpsReconError(
+            f"images of {shape[1]} x {shape[0]} px but the calibration was prepared for "
+            f"{prepared.shape[1]} x {prepared.shape[0]}: the camera mode changed; "
+            "recalibrate (flat field and lights) for this image size")
+    k_matrix = prepared.camera_matrix
+    saturated = stack >= options.saturation_fraction * full_scale
+    if dark is not None:
+        if np.shape(dark) != shape:
+            raise FingerpsReconError(f"dark frame {np.shape(dark)} differs from the images {shape}")
+        stack -= np.asarray(dark, dtype=np.float32)
+        np.maximum(stack, 0.0, out=stack)
+    if prepared.flat_gain is not None:
+        stack *= prepared.flat_gain
+    lights, light_power = prepared.lights, prepared.light_power
+    # Saturated pixels stay excluded after any correction: mark them above the new limit.
+    limit = float(stack.max()) + 1.0
+    any_saturated = bool(saturated.any())
+    if mask is None:
+        mask = finger_mask(np.where(saturated, 0.0, stack) if any_saturated else stack,
+                           threshold=options.mask_threshold)
+    elif np.shape(mask) != shape:
+        raise FingerpsReconError(f"mask {np.shape(mask)} differs from the images {shape}")
+    if any_saturated:
+        np.copyto(stack, np.float32(limit), where=saturated)
+    mask = np.asarray(mask, dtype=bool)
+    if not mask.any():
+        raise NoFingerError(
+            "no finger in the burst (the mask selects nothing): place a finger in view, or "
+            "lower mask_threshold if it is there but dim")
+    timings["prepare"] = (time.perf_counter() - t0) * 1e3
+
+    t1 = time.perf_counter()
+    shadow_level = options.shadow_fraction * full_scale
+    lam = solve_lambertian(stack, lights, intensities=light_power, mask=mask,
+                           shadow_level=shadow_level, saturation_level=limit)
+    timings["lambert"] = (time.perf_counter() - t1) * 1e3
+    valid = lam.valid & mask
+    residual = lam.relative_misfit()  # gathered by the solve over the valid pixels' usable values
+    normals, albedo, hk_scale = lam.normals, lam.albedo, None
+    if options.model is Model.HK:
+        from fingerps_recon.photometric.hk_solver import solve_hk
+
+        t1 = time.perf_counter()
+        usable = (stack > shadow_level) & (stack < limit)
+        hk = solve_hk(stack, lights, mask=valid, init_normals=normals, init_albedo=albedo,
+                      views=prepared.views, intensities=light_power, usable=usable,
+                      iterations=options.hk_iterations)
+        normals, albedo, valid, hk_scale = hk.normals, hk.albedo, hk.valid & valid, hk.scale
+        timings["hk"] = (time.perf_counter() - t1) * 1e3
+    # Both solvers give float32 normals and albedo that are zero where they are not valid.
+
+    enhanced = None
+    if options.enhance:
+        t1 = time.perf_counter()
+        enhanced = enhance_ridges(normals, w=options.w, k=options.k, mask=valid)
+        timings["enhance"] = (time.perf_counter() - t1) * 1e3
+
+    t2 = time.perf_counter()
+    depth, height, points, index = _surface(normals, valid, k_matrix, options)
+    timings["depth"] = (time.perf_counter() - t2) * 1e3
+    timings["total"] = (time.perf_counter() - t0) * 1e3
+    return Reconstruction(
+        normals_ps=normals, enhanced_ps=enhanced, albedo=albedo, mask=valid, depth_m=depth,
+        height_m=height, points_optical=points, point_albedo=albedo.reshape(-1)[index],
+        hk_scale=hk_scale, residual=residual, timings_ms=timings)
+
+
+def check_calibration(
+    lights_ps: np.ndarray,
+    *,
+    intensities: np.ndarray | None = None,
+    led_positions_optical: np.ndarray | None = None,
+) -> None:
+    """Raise ``FingerpsReconError`` unless a light calibration can determine normals: at
+    least 3 finite unit directions (K, 3) that are neither parallel nor coplanar, finite
+    positive relative intensities (K,), finite LED positions (K, 3) in metres. Cheap (no
+    per-pixel work); :func:`prepare_calibration` calls it, and a node can call it when a
+    calibration arrives."""
+    lights = np.asarray(lights_ps, dtype=np.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3 or lights.shape[0] < 3:
+        raise FingerpsReconError(
+            f"light directions must be (K, 3) with K >= 3, got {lights.shape}; recalibrate "
+            "the lights")
+    count = lights.shape[0]
+    if not np.isfinite(lights).all():
+        raise FingerpsReconError(
+            "light directions contain NaN or infinite values; recalibrate the lights")
+    norms = np.linalg.norm(lights, axis=1)
+    off = np.flatnonzero(np.abs(norms - 1.0) > _UNIT_TOLERANCE)
+    if off.size:
+        raise FingerpsReconError(
+            f"light direction(s) of LED {', '.join(str(int(k)) for k in off)} are not unit "
+            f"vectors (lengths {', '.join(f'{norms[k]:.3g}' for k in off)}); recalibrate the "
+            "lights")
+    _check_conditioned(lights, "light directions")
+    if intensities is not None:
+        power = np.asarray(intensities, dtype=np.float64)
+        if power.shape != (count,) or not np.isfinite(power).all() or not np.all(power > 0):
+            raise FingerpsReconError(
+                f"relative intensities must be {count} finite values > 0, got "
+                f"{np.array2string(power, precision=3, max_line_width=10**6)}; recalibrate "
+                "the flat field")
+    if led_positions_optical is not None:
+        leds = np.asarray(led_positions_optical, dtype=np.float64)
+        if leds.shape != (count, 3) or not np.isfinite(leds).all():
+            raise FingerpsReconError(
+                f"LED positions must be {count} finite points (K, 3) in metres, got shape "
+                f"{leds.shape}{'' if leds.shape != (count, 3) else ' with NaN or inf'}; "
+                "recalibrate the lights")
+
+
+def check_portions(portions: np.ndarray) -> None:
+    """Raise ``FingerpsReconError`` unless flat-field portion maps (K, H, W) are finite,
+    non-negative and each has a positive maximum (paper Eq. 11: p_k in (0, 1]). One pass
+    over the maps: call it once per flat field, not per burst."""
+    p = np.asarray(portions)
+    if p.ndim != 3 or min(p.shape) < 1:
+        raise FingerpsReconError(
+            f"flat-field maps must be (K, H, W) with H, W >= 1, got {p.shape}")
+    flat = p.reshape(p.shape[0], -1)
+    if not np.isfinite(flat).all():
+        raise FingerpsReconError(
+            "flat-field maps contain NaN or infinite values; recalibrate the flat field")
+    low, high = flat.min(axis=1), flat.max(axis=1)
+    bad = np.flatnonzero((low < 0) | (high <= 0))
+    if bad.size:
+        raise FingerpsReconError(
+            f"flat-field map(s) of LED {', '.join(str(int(k)) for k in bad)} are negative or "
+            "all zero (portions must be in (0, 1]); recalibrate the flat field")
+
+
+def _check_conditioned(lights: np.ndarray, what: str) -> None:
+    """Raise unless the (K, 3) unit directions span 3D (not parallel, not coplanar)."""
+    singular = np.linalg.svd(lights, compute_uv=False)
+    if not singular[-1] > _MIN_LIGHT_CONDITION * singular[0]:
+        raise FingerpsReconError(
+            f"{what} are parallel or coplanar (singular values "
+            f"{', '.join(f'{v:.3g}' for v in singular)}): they cannot determine a normal; "
+            "recalibrate the lights (every LED lit, the sphere in view)")
+
+
+def _check_near_lights(leds: np.ndarray, camera_matrix: np.ndarray, shape: tuple[int, int],
+                       working_distance_m: float) -> None:
+    """Raise unless the LEDs light the plane z = working distance from its camera side and
+    their directions at the image centre span 3D (cheap: one point, not every pixel)."""
+    if not working_distance_m > 0:
+        raise FingerpsReconError(f"working distance must be > 0 m, got {working_distance_m}")
+    behind = np.flatnonzero(leds[:, 2] >= working_distance_m)
+    if behind.size:
+        raise FingerpsReconError(
+            f"LED(s) {', '.join(str(int(k)) for k in behind)} lie at or beyond the working "
+            f"distance {working_distance_m:g} m "
+            f"(z {', '.join(f'{leds[k, 2]:.3g}' for k in behind)} m): they cannot light the "
+            "finger's side facing the camera; recalibrate the lights or set working_distance")
+    centre = np.linalg.solve(camera_matrix, [(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
+    towards = leds - centre * working_distance_m
+    _check_conditioned(towards / np.linalg.norm(towards, axis=1, keepdims=True),
+                       "the LEDs' directions at the image centre")
+
+
+def _irradiance(portions: np.ndarray, intensities: np.ndarray | None,
+                lights: np.ndarray) -> np.ndarray:
+    """Per-pixel irradiance E_k (K, H, W) of each LED from the white target: W_k rebuilt from
+    the portion maps (p_k = W_k / max W_k) and the relative intensities (mean W_k over the
+    brightest LED's), divided by the target's cosine l_k . z (it faces the camera)."""
+    p = np.asarray(portions, dtype=np.float32)
+    relative = np.ones(len(p)) if intensities is None else intensities
+    white = p * (relative / p.reshape(len(p), -1).mean(axis=1))[:, None, None].astype(np.float32)
+    return white / np.maximum(lights[..., 2], _MIN_TARGET_COSINE)
+
+
+def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
+             options: ReconstructionOptions) -> tuple[np.ndarray, ...]:
+    """Depth, height, points and their pixel index, under the options' projection."""
+    distance = options.working_distance_m
+    if options.projection is Projection.PERSPECTIVE:
+        depth = integrate_normals_perspective(normals, mask=valid, camera_matrix=k_matrix,
+                                              working_distance_m=distance)
+        points, index = depth_to_points(depth, valid, camera_matrix=k_matrix)
+        return depth, (distance - depth).astype(np.float32), points, index
+    pixel_size = distance / float(k_matrix[0, 0])
+    height = integrate_normals(normals, mask=valid, pixel_size_m=pixel_size)
+    depth = (distance - height.astype(np.float64)).astype(np.float32)
+    index = np.flatnonzero(valid & np.isfinite(height))
+    v, u = np.divmod(index, valid.shape[1])
+    points = np.stack([(u - k_matrix[0, 2]) * pixel_size, (v - k_matrix[1, 2]) * pixel_size,
+                       depth.reshape(-1)[index]], axis=1).astype(np.float32)
+    return depth, height, points, index
+
+
+def _checked_stack(images: np.ndarray, light_count: int, *, full_scale: float,
+                   shadow_fraction: float) -> np.ndarray:
+    """The burst as a new (K, H, W) float32 array, or a FingerpsReconError saying what is
+    wrong with it (shape, count, NaN, dark images)."""
+    stack = np.array(images, dtype=np.float32)
+    if stack.ndim != 3:
+        raise FingerpsReconError(
+            f"a burst must be K images of one size, (K, H, W); got shape {stack.shape}")
+    if min(stack.shape[1:]) < 1:
+        raise FingerpsReconError(
+            f"the images are {stack.shape[2]} x {stack.shape[1]} px: empty; check the camera")
+    if stack.shape[0] != light_count:
+        raise FingerpsReconError(
+            f"{stack.shape[0]} images (shape {stack.shape}) but {light_count} light directions: "
+            "give one image per calibrated LED (recalibrate if the LED count changed)")
+    if not np.isfinite(stack).all():
+        raise FingerpsReconError("the images contain NaN or infinite values; check the camera")
+    brightest = stack.reshape(stack.shape[0], -1).max(axis=1)
+    dark = np.flatnonzero(brightest <= shadow_fraction * full_scale)
+    if dark.size:
+        raise FingerpsReconError(
+            f"image(s) of LED {', '.join(str(int(k)) for k in dark)} are dark (nothing above "
+            f"{shadow_fraction:.0%} of full scale {full_scale:g}): check that the LED works "
+            "and the finger is in view")
+    return stack

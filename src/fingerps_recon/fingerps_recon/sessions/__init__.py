@@ -1,0 +1,1 @@
+"""Recorded sessions: MCAP/rosbag2 bags written, read, recovered and replayed."""

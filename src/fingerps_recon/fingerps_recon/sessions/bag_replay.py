@@ -1,0 +1,199 @@
+"""bag_replay: plays a session bag's topics back into the graph.
+
+    ros2 run fingerps_recon bag_replay --ros-args -p bag:=bags/fingerps_20250131T120000Z \\
+        -p rate:=2.0 -p start:=5.0 -p stop:=20.0 -p "topics:=[/fingerps/burst]"
+
+Messages are published on their recorded (absolute) topic names, as serialized bytes (no
+decoding), with the recorded spacing of their log times divided by ``rate``; ``rate`` 0
+publishes them back to back. ``start``/``stop`` are seconds after the bag's first message.
+Calibration topics (offered transient-local when recorded) are published with
+`fingerps_ros.qos.CALIBRATION_QOS`, and the last calibration message before ``start`` is
+published when playback begins, so a consumer gets the calibration in force; other known
+topics get the recorder's QoS (`recorder_node.TOPIC_TABLE`), unknown ones reliable depth 10.
+``wait_for_subscribers`` holds each non-calibration topic's first message until that many
+subscribers have matched (a volatile topic's messages published before would be lost).
+
+The bag is read with `fingerps_recon.sessions.bag_reader.SessionBagReader`: a bag recorded with
+another version of our messages is refused (exit code 1 and one line), a damaged bag is
+played whole but for its damaged chunks (then an error naming the damaged byte ranges,
+exit code 1).
+
+Threads: the executor spins the node; one worker thread reads and publishes. With
+``exit_when_done`` the node shuts down once the last message is out.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import rclpy
+import yaml
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.recorder_node import TOPIC_TABLE
+from fingerps_recon.sessions.bag_reader import BagMessage, SessionBagReader, message_class
+from fingerps_ros import qos
+from fingerps_ros.node_runner import StartupError, run_node
+from fingerps_ros.parameters import ParameterChecks, descriptor
+
+SUBSCRIBER_WAIT_S = 10.0
+LINGER_S = 0.5
+"""Seconds the node stays up after the last message, so reliable deliveries complete."""
+
+
+def _is_transient_local(offered_qos_yaml: str) -> bool:
+    try:
+        profiles = yaml.safe_load(offered_qos_yaml) or []
+    except yaml.YAMLError:
+        return False
+    return any(isinstance(p, dict) and p.get("durability") in ("transient_local", 1)
+               for p in profiles)
+
+
+class BagReplayNode(Node):
+    """Publishes a bag's messages with their recorded timing (scaled by ``rate``)."""
+
+    def __init__(self) -> None:
+        super().__init__("bag_replay", namespace="/fingerps")
+        checks = ParameterChecks(self)
+        checks.add("bag", lambda v: None if str(v) else "must name a bag directory or .mcap")
+        p = self.declare_parameter
+        p("bag", "", descriptor("Bag directory (or .mcap file) to play", read_only=True))
+        p("rate", 1.0, descriptor("Speed factor of the recorded timing; 0 = back to back",
+                                  min_value=0.0, max_value=1000.0, read_only=True))
+        p("start", 0.0, descriptor("Seconds after the bag's first message to start at",
+                                   min_value=0.0, max_value=1e9, read_only=True))
+        p("stop", 0.0, descriptor("Seconds after the bag's first message to stop at; 0 = the "
+                                  "end", min_value=0.0, max_value=1e9, read_only=True))
+        p("topics", [""], descriptor("Topics to play (absolute, as recorded); empty = all",
+                                     read_only=True))
+        p("wait_for_subscribers", 0, descriptor(
+            "Hold each non-calibration topic's first message until this many subscribers "
+            f"matched (at most {SUBSCRIBER_WAIT_S:.0f} s)", min_value=0, max_value=100,
+            integer=True, read_only=True))
+        p("exit_when_done", True, descriptor("Shut the node down after the last message",
+                                             read_only=True))
+        checks.refuse_unknown_overrides(self)
+        g = self.get_parameter
+        bag = str(g("bag").value)
+        if not bag:
+            raise StartupError("no bag given: set -p bag:=<bag directory or .mcap file>")
+        try:
+            self._reader = SessionBagReader(bag)
+        except FingerpsReconError as err:
+            raise StartupError(str(err)) from None
+        self._rate = float(g("rate").value)
+        self._start_ns = int(float(g("start").value) * 1e9)
+        stop = float(g("stop").value)
+        self._stop_ns = int(stop * 1e9) if stop > 0 else None
+        self._topics = [t for t in (g("topics").value or []) if t] or None
+        self._subscribers = int(g("wait_for_subscribers").value)
+        self._exit_when_done = bool(g("exit_when_done").value)
+        self._topic_publishers: dict[str, Any] = {}
+        self._stop = threading.Event()
+        self.failed = False
+        self.published = 0
+        self._worker = threading.Thread(target=self._play, name="bag_replay")
+        self._worker.start()
+        self.get_logger().info(
+            f"playing {self._reader.mcap_path} at rate {self._rate:g}"
+            f"{' (back to back)' if self._rate == 0 else ''}")
+
+    # ------------------------------------------------------------------ publishing
+    def _publisher(self, message: BagMessage) -> Any:
+        publisher = self._topic_publishers.get(message.topic)
+        if publisher is not None:
+            return publisher
+        latched = _is_transient_local(message.offered_qos_yaml)
+        profile = qos.CALIBRATION_QOS if latched else self._profile(message.topic)
+        publisher = self.create_publisher(message_class(message.type_name), message.topic,
+                                          profile)
+        self._topic_publishers[message.topic] = publisher
+        if self._subscribers and not latched:
+            deadline = time.monotonic() + SUBSCRIBER_WAIT_S
+            while (publisher.get_subscription_count() < self._subscribers
+                   and time.monotonic() < deadline and not self._stop.is_set()):
+                time.sleep(0.02)
+        return publisher
+
+    def _profile(self, topic: str) -> QoSProfile:
+        for key, spec in TOPIC_TABLE.items():
+            if self.resolve_topic_name(key) == topic:
+                return spec.qos
+        return QoSProfile(depth=10)
+
+    def _play(self) -> None:
+        try:
+            self._play_messages()
+        except FingerpsReconError as err:
+            self.failed = True
+            self.get_logger().error(str(err))
+        except Exception as err:  # the worker must end the node, not hang it
+            self.failed = True
+            self.get_logger().error(f"replay failed: {type(err).__name__}: {err}")
+        finally:
+            self.get_logger().info(f"replay done: {self.published} messages published")
+            if self._exit_when_done and not self._stop.wait(LINGER_S):
+                rclpy.try_shutdown(context=self.context)
+
+    def _play_messages(self) -> None:
+        first_ns: int | None = None
+        clock: tuple[float, int] | None = None  # (wall time, bag offset) of the first played
+        held: dict[str, BagMessage] = {}  # calibration before start: the latest of each
+        for message in self._reader.messages(self._topics):
+            if self._stop.is_set():
+                return
+            if first_ns is None:
+                first_ns = message.log_time_ns
+            offset = message.log_time_ns - first_ns
+            if self._stop_ns is not None and offset > self._stop_ns:
+                return
+            if offset < self._start_ns:
+                if _is_transient_local(message.offered_qos_yaml):
+                    held[message.topic] = message
+                continue
+            for early in held.values():
+                self._publisher(early).publish(early.data)
+                self.published += 1
+            held.clear()
+            publisher = self._publisher(message)  # may wait for subscribers
+            if self._rate > 0:
+                if clock is None:
+                    clock = (time.monotonic(), offset)
+                due = clock[0] + (offset - clock[1]) / 1e9 / self._rate
+                if self._stop.wait(max(due - time.monotonic(), 0.0)):
+                    return
+            publisher.publish(message.data)
+            self.published += 1
+        for early in held.values():  # start beyond the last message: still the calibration
+            self._publisher(early).publish(early.data)
+            self.published += 1
+
+    def destroy_node(self) -> None:
+        """Stop the worker and destroy the node."""
+        self._stop.set()
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(timeout=5.0)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``ros2 run fingerps_recon bag_replay``; 1 when the bag could not be
+    played to its end (damage, another message version), 2 on bad input."""
+    made: list[BagReplayNode] = []
+
+    def make() -> BagReplayNode:
+        made.append(BagReplayNode())
+        return made[-1]
+
+    code = run_node(make, args=args, name="bag_replay",
+                    expected_errors=(FingerpsReconError,))
+    return 1 if code == 0 and made and made[0].failed else code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
