@@ -31,7 +31,7 @@ setup(
             'offline_recon = fingerps_recon.offline.offline_recon:main',
             'recorder_node = fingerps_recon.recorder_node:main',
             'bag_recover = fingerps_recon.sessions.bag_recover:main',
-            'bag_replay = fingerps_recon.sessions.bag_replay:main',
+            'bag_replay = fingerps_recon.bag_replay:main',
             'offline_tune = fingerps_recon.offline.offline_tune:main',
         ],
     },
