@@ -29,10 +29,10 @@ from fingerps_calib.intrinsics.camera_info_url import (
     store_camera_info,
 )
 from fingerps_calib.intrinsics.checkerboard_calibration import calibrate_checkerboard
-from fingerps_ros.privacy import start_private_tool
+from fingerps_ros.command_line import EXIT_FAILED, CommandLineTool, positive_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-EXIT_FAILED, EXIT_BAD_INPUT = 1, 2
+TOOL = CommandLineTool("calibrate_camera", bad_input=(FingerpsCalibError,))
 
 
 def _pattern(text: str) -> tuple[int, int]:
@@ -46,16 +46,6 @@ def _pattern(text: str) -> tuple[int, int]:
     return cols, rows
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text} must be > 0")
-    return value
-
-
 def parser() -> argparse.ArgumentParser:
     """The command's argument parser."""
     p = argparse.ArgumentParser(
@@ -64,7 +54,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("folder", help="folder of checkerboard images")
     p.add_argument("--pattern", type=_pattern, required=True,
                    help="inner corners COLSxROWS, e.g. 9x6 for 10 x 7 squares")
-    p.add_argument("--square", type=_positive, required=True, help="square side, metres")
+    p.add_argument("--square", type=positive_number, required=True, help="square side, metres")
     p.add_argument("--camera-name", default="camera", help="name written into the file")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--out", help="output file (default FOLDER/camera_info.yaml)")
@@ -73,7 +63,7 @@ def parser() -> argparse.ArgumentParser:
         help="write where driver_node's camera_info_url looks (camera_info_manager's rules: "
              "file:///..., package://..., ${NAME}, ${ROS_HOME}); '' = "
              "~/.ros/camera_info/<camera-name>.yaml, the driver's default")
-    p.add_argument("--max-rms", type=_positive, default=1.0,
+    p.add_argument("--max-rms", type=positive_number, default=1.0,
                    help="largest acceptable rms reprojection error, pixels (default 1)")
     return p
 
@@ -123,14 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_calib calibrate_camera``."""
-    if not start_private_tool("calibrate_camera"):  # owner-only files (fingerps_ros.privacy)
-        return 2
-    args = parser().parse_args(argv)
-    try:
-        return run(args)
-    except FingerpsCalibError as exc:
-        print(f"calibrate_camera: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    return TOOL.main(parser(), run, argv)
 
 
 if __name__ == "__main__":

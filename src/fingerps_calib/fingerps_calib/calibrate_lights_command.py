@@ -44,12 +44,12 @@ from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.intrinsics.camera_info_yaml import load_camera_info
 from fingerps_calib.lights.sphere_calibration import calibrate_lights, calibrate_lights_orthographic
 from fingerps_recon.photometric.frames import ps_to_optical
-from fingerps_ros.privacy import start_private_tool
+from fingerps_ros.command_line import EXIT_FAILED, CommandLineTool, positive_number
 
 DIRECTIONS_FILE = "light_directions.txt"
 REPORT_FILE = "light_calibration_report.yaml"
 PICTURE_FILE = "light_calibration.png"
-EXIT_FAILED, EXIT_BAD_INPUT = 1, 2
+TOOL = CommandLineTool("calibrate_lights", bad_input=(FingerpsCalibError,))
 
 
 def read_sphere_folder(folder: Path, *, mask_path: Path | None = None
@@ -202,16 +202,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text} must be > 0")
-    return value
-
-
 def parser() -> argparse.ArgumentParser:
     """The command's argument parser."""
     p = argparse.ArgumentParser(
@@ -220,8 +210,8 @@ def parser() -> argparse.ArgumentParser:
                     "shiny-sphere images, one per LED, listed in filenames.txt.")
     p.add_argument("folder", help="folder with filenames.txt, the images and optionally "
                                   "mask.png")
-    p.add_argument("--radius", type=_positive, help="sphere radius in metres (with "
-                                                     "--camera-info)")
+    p.add_argument("--radius", type=positive_number,
+                   help="sphere radius in metres (with --camera-info)")
     p.add_argument("--camera-info", help="camera_info YAML of the camera; without it the "
                                          "orthographic method is used")
     p.add_argument("--mask", help="mask image of the sphere (default FOLDER/mask.png if "
@@ -229,21 +219,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: FOLDER)")
     p.add_argument("--force", action="store_true", help="replace an existing "
                                                         "light_directions.txt")
-    p.add_argument("--full-scale", type=_positive,
+    p.add_argument("--full-scale", type=positive_number,
                    help="saturation level of the images (default: the file's bit depth)")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_calib calibrate_lights``."""
-    if not start_private_tool("calibrate_lights"):  # owner-only files (fingerps_ros.privacy)
-        return 2
-    args = parser().parse_args(argv)
-    try:
-        return run(args)
-    except FingerpsCalibError as exc:
-        print(f"calibrate_lights: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    return TOOL.main(parser(), run, argv)
 
 
 if __name__ == "__main__":

@@ -37,9 +37,9 @@ from pathlib import Path
 import yaml
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
-from fingerps_ros.privacy import start_private_tool, use_localhost_discovery
+from fingerps_ros.command_line import EXIT_BAD_INPUT, CommandLineTool
+from fingerps_ros.privacy import use_localhost_discovery
 
-EXIT_BAD_INPUT = 2
 NAMESPACE = "/fingerps"
 
 
@@ -63,6 +63,9 @@ GRAPH = (
 
 class BringupError(Exception):
     """Bringup cannot start; the message names the problem and what to do."""
+
+
+TOOL = CommandLineTool("bringup", bad_input=(BringupError,), error_prefix="[bringup] error: ")
 
 
 def check_params_file(path: Path) -> dict:
@@ -183,11 +186,7 @@ def run(params: Path, *, log_dir: Path | None, stop_timeout_s: float,
     return 0 if all(code in (0, -signal.SIGTERM) for code in codes.values()) else 1
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``ros2 run fingerps_driver bringup``."""
-    if not start_private_tool("bringup"):  # owner-only files (fingerps_ros.privacy)
-        return 2
-    use_localhost_discovery()  # the graph it starts talks to this machine only, by default
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--params", type=Path, default=None,
                         help="ROS 2 parameter file of the graph (default: the installed "
@@ -197,13 +196,18 @@ def main(argv: list[str] | None = None) -> int:
                              "this terminal")
     parser.add_argument("--stop-timeout", type=float, default=20.0,
                         help="seconds the nodes get to stop after Ctrl-C (default 20)")
-    args = parser.parse_args(argv)
-    try:
-        return run(args.params or default_params_file(), log_dir=args.log_dir,
-                   stop_timeout_s=args.stop_timeout, ignore_signals_after=True)
-    except BringupError as exc:
-        print(f"[bringup] error: {exc}", file=sys.stderr, flush=True)
-        return EXIT_BAD_INPUT
+    return parser
+
+
+def _run_command(args: argparse.Namespace) -> int:
+    use_localhost_discovery()  # the graph it starts talks to this machine only, by default
+    return run(args.params or default_params_file(), log_dir=args.log_dir,
+               stop_timeout_s=args.stop_timeout, ignore_signals_after=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``ros2 run fingerps_driver bringup``."""
+    return TOOL.main(_parser(), _run_command, argv)
 
 
 if __name__ == "__main__":

@@ -44,7 +44,6 @@ import argparse
 import importlib.util
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -70,25 +69,17 @@ from fingerps_recon.photometric.pipeline import (
 from fingerps_recon.surface.ply import write_ply
 from fingerps_recon.surface.png_resolution import png_with_resolution
 from fingerps_recon.surface.rolled_print import RolledPrintError, rolled_print
-from fingerps_ros.privacy import start_private_tool
+from fingerps_ros.command_line import CommandLineTool
 
 _DEFAULTS = ReconstructionOptions()
 _PROG = "offline_recon"
+TOOL = CommandLineTool(_PROG, bad_input=(FingerpsReconError,), failed=(OSError,),
+                       failed_context="cannot write the outputs: ")
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_recon offline_recon``; returns the exit code."""
-    if not start_private_tool("offline_recon"):  # owner-only files (fingerps_ros.privacy)
-        return 2
-    args = _parser().parse_args(argv)
-    try:
-        return run(args)
-    except FingerpsReconError as exc:
-        print(f"{_PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"{_PROG}: error: cannot write the outputs: {exc}", file=sys.stderr)
-        return 1
+    return TOOL.main(_parser(), run, argv)
 
 
 def run(args: argparse.Namespace) -> int:

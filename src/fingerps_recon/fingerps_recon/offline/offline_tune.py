@@ -56,10 +56,11 @@ from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.surface.ply import write_ply
+from fingerps_ros.command_line import CommandLineTool
 from fingerps_ros.errors import FingerpsError
-from fingerps_ros.privacy import start_private_tool
 
 _PROG = "offline_tune"
+TOOL = CommandLineTool(_PROG, bad_input=(FingerpsError,), failed=(OSError,))
 BURST_TYPE = "fingerps_msgs/msg/Burst"
 LIGHTS_TYPE = "fingerps_msgs/msg/LightCalibration"
 FLAT_TYPE = "fingerps_msgs/msg/FlatField"
@@ -354,45 +355,40 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``ros2 run fingerps_recon offline_tune``; returns the exit code."""
-    if not start_private_tool("offline_tune"):  # owner-only files (fingerps_ros.privacy)
-        return 2
-    args = _parser().parse_args(argv)
-    try:
-        settings = settings_grid(args.model, args.w, args.k)
-        source = args.source
-        if (source / "filenames.txt").is_file():
-            if args.calibration is not None:
-                raise FingerpsReconError("--calibration is for bags; a folder has its lights")
-            bursts = [burst_from_folder(source)]
-        elif source.exists():
-            bursts = bursts_from_bag(source, calibration=args.calibration, limit=args.bursts)
-        else:
-            raise FingerpsReconError(f"{source} does not exist")
-        if not bursts:
-            raise FingerpsReconError(f"no burst of {source} fits its calibration")
-        if args.ridge_period is not None:
-            if not args.ridge_period > 2:
-                raise FingerpsReconError("--ridge-period must be more than 2 pixels")
-            bursts = [replace(b, ridge_period_px=args.ridge_period) for b in bursts]
-        if args.out.exists() and not args.out.is_dir():
-            raise FingerpsReconError(f"--out {args.out} exists and is not a folder")
-        args.out.mkdir(parents=True, exist_ok=True)
-        rows = run_sweep(bursts, settings, args.out, jobs=max(1, min(args.jobs,
-                                                                     os.cpu_count() or 1)))
-        table = write_summary(rows, args.out)
-        sheet = write_contact_sheet(rows, args.out)
-    except FingerpsError as exc:
-        print(f"{_PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"{_PROG}: error: {exc}", file=sys.stderr)
-        return 1
+def run(args: argparse.Namespace) -> int:
+    """Read the source, sweep the settings, write and print the summary; return 0."""
+    settings = settings_grid(args.model, args.w, args.k)
+    source = args.source
+    if (source / "filenames.txt").is_file():
+        if args.calibration is not None:
+            raise FingerpsReconError("--calibration is for bags; a folder has its lights")
+        bursts = [burst_from_folder(source)]
+    elif source.exists():
+        bursts = bursts_from_bag(source, calibration=args.calibration, limit=args.bursts)
+    else:
+        raise FingerpsReconError(f"{source} does not exist")
+    if not bursts:
+        raise FingerpsReconError(f"no burst of {source} fits its calibration")
+    if args.ridge_period is not None:
+        if not args.ridge_period > 2:
+            raise FingerpsReconError("--ridge-period must be more than 2 pixels")
+        bursts = [replace(b, ridge_period_px=args.ridge_period) for b in bursts]
+    if args.out.exists() and not args.out.is_dir():
+        raise FingerpsReconError(f"--out {args.out} exists and is not a folder")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = run_sweep(bursts, settings, args.out, jobs=max(1, min(args.jobs,
+                                                                 os.cpu_count() or 1)))
+    table = write_summary(rows, args.out)
+    sheet = write_contact_sheet(rows, args.out)
     print(table)
     print(f"\n{len(bursts)} burst(s) x {len(settings)} setting(s); "
           f"{args.out / 'summary.csv'}, {sheet}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``ros2 run fingerps_recon offline_tune``; returns the exit code."""
+    return TOOL.main(_parser(), run, argv)
 
 
 if __name__ == "__main__":

@@ -17,13 +17,12 @@ exists).
 from __future__ import annotations
 
 import argparse
-import sys
 
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.sessions.bag_recovery import BagRecoveryError, default_destination, recover_bag
-from fingerps_ros.privacy import start_private_tool
+from fingerps_ros.command_line import CommandLineTool
 
-EXIT_BAD_INPUT = 2
+TOOL = CommandLineTool("bag_recover", bad_input=(BagRecoveryError, FingerpsReconError, OSError))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,19 +36,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def run(options: argparse.Namespace) -> int:
+    """Recover the bag and print the report; return the exit status."""
+    destination = options.output or default_destination(options.source)
+    print(recover_bag(options.source, destination).describe())
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ros2 run fingerps_recon bag_recover``; returns the exit code."""
-    if not start_private_tool("bag_recover"):  # owner-only files (fingerps_ros.privacy)
-        return 2
-    options = build_parser().parse_args(argv)
-    destination = options.output or default_destination(options.source)
-    try:
-        report = recover_bag(options.source, destination)
-    except (BagRecoveryError, FingerpsReconError, OSError) as err:
-        print(f"bag_recover: error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    print(report.describe())
-    return 0
+    return TOOL.main(build_parser(), run, argv)
 
 
 if __name__ == "__main__":
