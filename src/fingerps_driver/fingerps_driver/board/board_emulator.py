@@ -33,9 +33,10 @@ import sys
 import threading
 import time
 import tty
+from abc import ABC, abstractmethod
 from enum import Enum
-from types import TracebackType
-from typing import Any
+from functools import partial
+from typing import Any, Self
 
 from fingerps_driver.board.board_protocol import (
     MAX_LEDS,
@@ -43,7 +44,6 @@ from fingerps_driver.board.board_protocol import (
     REQUEST_SIGIL,
     Command,
     ErrorCode,
-    LineFramer,
     ProtocolError,
     Reply,
     Request,
@@ -52,11 +52,11 @@ from fingerps_driver.board.board_protocol import (
     format_mask,
     mask_to_indices,
 )
+from fingerps_driver.board.frame_reader import POLL_S, FrameReader
 from fingerps_driver.errors import FingerpsDriverError
 
 DEFAULT_LINK_PATH = "/tmp/fingerps_board"
 FIRMWARE = "fingerps-emu-1.0"
-_POLL_S = 0.05
 
 
 class BoardEmulatorError(FingerpsDriverError):
@@ -83,7 +83,26 @@ class Fault(Enum):
     SLOW_REPLY = "slow_reply"  # the reply leaves ``slow_reply_s`` late
 
 
-class BoardEmulator:
+class _Served(ABC):
+    """Served by a background thread between ``start`` and ``stop``; ``with`` does both."""
+
+    @abstractmethod
+    def start(self) -> None:
+        """Start serving."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Stop serving. Safe to call twice."""
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()
+
+
+class BoardEmulator(_Served):
     """The LED board, emulated on a pseudo-terminal served by a background thread.
 
     The lifecycle methods (start, stop, disconnect, reconnect, inject) are serialised by a
@@ -209,18 +228,6 @@ class BoardEmulator:
         thread = threading.Thread(target=cut, name="board-emulator-power-cut")
         self._power_cut = thread
         thread.start()
-
-    def __enter__(self) -> BoardEmulator:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
 
     # -- state -----------------------------------------------------------------------
 
@@ -361,22 +368,17 @@ class BoardEmulator:
             self._fds = None
 
     def _serve(self, master: int, wake_r: int, stop: threading.Event) -> None:
-        framer = LineFramer(REQUEST_SIGIL)
+        reader = FrameReader(master, partial(os.read, master), REQUEST_SIGIL, wake_fd=wake_r)
         while not stop.is_set():
-            ready, _, _ = select.select([master, wake_r], [], [], _POLL_S)
-            if wake_r in ready or master not in ready:
-                continue
             try:
-                data = os.read(master, 4096)
+                for line in reader.lines(stop=stop):
+                    if stop.is_set():
+                        break  # power is being cut: nothing more is executed
+                    reply = self._handle(line)
+                    if reply is not None and not stop.is_set():
+                        self._send(master, reply, stop)
             except OSError:  # EIO: no slave open; cannot happen while we hold one
-                stop.wait(_POLL_S)
-                continue
-            for line in framer.feed(data):
-                if stop.is_set():
-                    break  # power is being cut: nothing more is executed
-                reply = self._handle(line)
-                if reply is not None and not stop.is_set():
-                    self._send(master, reply, stop)
+                stop.wait(POLL_S)
 
     def _send(self, master: int, reply: bytes, stop: threading.Event) -> None:
         with self._lock:
@@ -399,7 +401,7 @@ class BoardEmulator:
             try:
                 view = view[os.write(master, view) :]
             except BlockingIOError:
-                select.select([], [master], [], _POLL_S)
+                select.select([], [master], [], POLL_S)
             except OSError:
                 return
 
@@ -463,7 +465,7 @@ CONTROL_COMMANDS = {
 _MAX_CONTROL_LINE = 1024
 
 
-class EmulatorControlServer:
+class EmulatorControlServer(_Served):
     """Serves the control channel of a ``BoardEmulator`` on a UNIX stream socket.
 
     Line protocol: the client sends one command a line (``CONTROL_COMMANDS``, words
@@ -532,18 +534,6 @@ class EmulatorControlServer:
             self._listener = None
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self._path)
-
-    def __enter__(self) -> EmulatorControlServer:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
 
     def _serve(self) -> None:
         assert self._listener is not None and self._wake is not None
@@ -685,15 +675,10 @@ class BoardEmulatorControl:
         with self._lock:
             self._close()
 
-    def __enter__(self) -> BoardEmulatorControl:
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.close()
 
     def command(self, line: str) -> Any:

@@ -9,11 +9,9 @@ are idempotent, so a resend is safe even if the first attempt took effect.
 from __future__ import annotations
 
 import errno
-import select
 import termios
 import time
 from dataclasses import dataclass
-from types import TracebackType
 
 import serial
 
@@ -23,7 +21,6 @@ from fingerps_driver.board.board_protocol import (
     REPLY_SIGIL,
     Command,
     ErrorCode,
-    LineFramer,
     ProtocolError,
     Reply,
     Request,
@@ -34,6 +31,8 @@ from fingerps_driver.board.board_protocol import (
     parse_mask,
     parse_uint,
 )
+from fingerps_driver.board.frame_reader import FrameReader
+from fingerps_driver.capture.device import Device
 from fingerps_driver.errors import FingerpsDriverError
 
 
@@ -95,7 +94,7 @@ class _RetryableError(Exception):
         self.error = error
 
 
-class LedBoard:
+class LedBoard(Device):
     """Client of the LED board on a serial port.
 
     Parameters
@@ -127,7 +126,7 @@ class LedBoard:
         self._timeout_s = timeout_s
         self._retries = retries
         self._serial: serial.Serial | None = None
-        self._framer = LineFramer(REPLY_SIGIL)
+        self._reader: FrameReader | None = None
         self._seq = 0
         self._acknowledged: int | None = None
         self.resends = 0
@@ -147,10 +146,8 @@ class LedBoard:
         unknown (not open, just opened, or a switch failed)."""
         return self._acknowledged
 
-    def open(self) -> None:
+    def _acquire(self) -> None:
         """Open the port. Raises ``BoardNotFoundError`` if it does not exist."""
-        if self._serial is not None:
-            return
         try:
             ser = serial.Serial(
                 self._port, baudrate=self._baudrate, timeout=0, write_timeout=self._timeout_s
@@ -180,28 +177,17 @@ class LedBoard:
                 f"LED board port {self._port} failed right after opening ({exc})"
             ) from exc
         self._serial = ser
+        self._reader = FrameReader(ser.fileno(), ser.read, REPLY_SIGIL)
 
-    def close(self) -> None:
-        """Close the port. Safe to call twice; never raises on a vanished port."""
-        ser, self._serial = self._serial, None
+    def _release(self) -> None:
+        """Close the port; never raises on a vanished port."""
+        ser, self._serial, self._reader = self._serial, None, None
         self._acknowledged = None
         if ser is not None:
             try:
                 ser.close()
             except (serial.SerialException, OSError, termios.error):
                 pass
-
-    def __enter__(self) -> LedBoard:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- commands --------------------------------------------------------------------
 
@@ -261,8 +247,8 @@ class LedBoard:
     # -- transport -------------------------------------------------------------------
 
     def _transact(self, command: Command, args: tuple[int, ...] = ()) -> Reply:
-        ser = self._serial
-        if ser is None:
+        ser, reader = self._serial, self._reader
+        if ser is None or reader is None:
             raise BoardError(f"LED board port {self._port} is not open; call open() first")
         failure: _RetryableError | None = None
         for attempt in range(1 + self._retries):
@@ -271,7 +257,7 @@ class LedBoard:
             self._seq = next_seq(self._seq)
             request = Request(self._seq, command, args)
             try:
-                reply = self._attempt(ser, request)
+                reply = self._attempt(ser, reader, request)
             except _RetryableError as exc:
                 failure = exc
                 continue
@@ -294,28 +280,22 @@ class LedBoard:
             f"attempt(s), last: {failure}; check the cable and the board's power"
         )
 
-    def _attempt(self, ser: serial.Serial, request: Request) -> Reply:
+    def _attempt(self, ser: serial.Serial, reader: FrameReader, request: Request) -> Reply:
         """Send once and wait for the matching reply; ``_RetryableError`` if a resend may help."""
         deadline = time.monotonic() + self._timeout_s
         try:
             ser.reset_input_buffer()
-            self._framer.reset()
+            reader.reset()
             ser.write(encode_request(request))
-            while True:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise _RetryableError(BoardTimeoutError, f"no reply within {self._timeout_s} s")
-                ready, _, _ = select.select([ser.fileno()], [], [], remaining)
-                if not ready:
-                    continue
-                for line in self._framer.feed(ser.read(4096)):
-                    try:
-                        reply = decode_reply(line)
-                    except ProtocolError as exc:
-                        raise _RetryableError(BoardProtocolError, f"garbled reply: {exc}") from None
-                    if reply.seq == request.seq:
-                        return reply
-                    # else: stale reply to an earlier attempt, keep waiting
+            for line in reader.lines(deadline=deadline):
+                try:
+                    reply = decode_reply(line)
+                except ProtocolError as exc:
+                    raise _RetryableError(BoardProtocolError, f"garbled reply: {exc}") from None
+                if reply.seq == request.seq:
+                    return reply
+                # else: stale reply to an earlier attempt, keep waiting
+            raise _RetryableError(BoardTimeoutError, f"no reply within {self._timeout_s} s")
         except serial.SerialTimeoutException as exc:
             raise _RetryableError(BoardTimeoutError, f"write timed out ({exc})") from None
         except (serial.SerialException, OSError, termios.error, ValueError) as exc:

@@ -1,8 +1,10 @@
-"""Camera interface of the driver, the frame checks every backend shares, and a simulated
+"""Camera base class of the driver, the frame checks every backend shares, and a simulated
 camera.
 
-``Camera`` is the one interface the burst sequencer needs; a camera whose exposure can be
-set between frames also provides ``ExposureControl``. Backends:
+``Camera`` is the one base class of every backend and the interface the burst sequencer
+needs: it owns the lifecycle (open, close, ``with``) and the checks of ``grab``; a backend
+implements only how it acquires, releases and reads its device. A camera whose exposure can
+be set between frames also provides ``ExposureControl``. Backends:
 
 - ``SimulatedCamera`` (here) renders whatever LEDs the board has *actually* lit when
   ``grab`` is called (it asks a ``lit_leds`` callable, normally reading
@@ -14,13 +16,14 @@ set between frames also provides ``ExposureControl``. Backends:
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from collections.abc import Callable, Sequence
-from types import TracebackType
 from typing import Protocol, runtime_checkable
 
 import cv2
 import numpy as np
 
+from fingerps_driver.capture.device import Device
 from fingerps_driver.errors import FingerpsDriverError
 
 ENCODING_DTYPES = {"mono8": np.dtype(np.uint8), "mono16": np.dtype(np.uint16)}
@@ -42,6 +45,18 @@ class ExposureControl(Protocol):
         the device refuses and go on (``OpenCvCamera.refused_settings``).
         """
         ...
+
+
+def check_encoding(encoding: str, *, name: str = "encoding") -> None:
+    """Raise ``ValueError`` (a programming error) unless ``encoding`` is a supported one."""
+    if encoding not in ENCODING_DTYPES:
+        raise ValueError(f"{name} {encoding!r} is not one of {sorted(ENCODING_DTYPES)}")
+
+
+def check_requested_size(width: int, height: int, *, name: str) -> None:
+    """Raise ``ValueError`` unless a size asked for is both (> 0) or neither (0, the device's)."""
+    if width < 0 or height < 0 or (width == 0) != (height == 0):
+        raise ValueError(f"{name} {width}x{height}: give both (> 0) or neither (0)")
 
 
 def to_mono(frame: object, *, encoding: str, source: str) -> np.ndarray:
@@ -69,8 +84,7 @@ def to_mono(frame: object, *, encoding: str, source: str) -> np.ndarray:
     CameraError
         No frame, or a frame that cannot be made into ``encoding``.
     """
-    if encoding not in ENCODING_DTYPES:
-        raise ValueError(f"encoding {encoding!r} is not one of {sorted(ENCODING_DTYPES)}")
+    check_encoding(encoding)
     if frame is None:
         raise CameraError(f"no frame from {source}")
     if not isinstance(frame, np.ndarray):
@@ -100,32 +114,48 @@ def check_frame(image: np.ndarray, *, width: int, height: int, source: str) -> n
     return image
 
 
-@runtime_checkable
-class Camera(Protocol):
-    """A monochrome camera delivering one frame per ``grab``."""
+class Camera(Device):
+    """A monochrome camera delivering one frame per ``grab``: what every backend shares.
+
+    The base owns the lifecycle (``open``/``close``/``with`` of ``capture.device.Device``),
+    the size and encoding, the checks of ``grab`` (a positive timeout, an open camera) and
+    the frame counter. A backend implements only what differs: ``is_open``, ``_acquire``,
+    ``_release`` and ``_frame`` (and ``source``, the camera as named in messages).
+
+    Parameters
+    ----------
+    width, height : int
+        Frame size in pixels; a backend that learns it at ``open`` sets it then.
+    encoding : str
+        ``"mono8"`` or ``"mono16"``; likewise.
+    """
+
+    def __init__(self, *, width: int, height: int, encoding: str) -> None:
+        self._width = width
+        self._height = height
+        self._encoding = encoding
+        self.frames_grabbed = 0
+        """Frames returned by ``grab`` since construction."""
 
     @property
     def width(self) -> int:
         """Image width in pixels (columns)."""
-        ...
+        return self._width
 
     @property
     def height(self) -> int:
         """Image height in pixels (rows)."""
-        ...
+        return self._height
 
     @property
     def encoding(self) -> str:
         """``"mono8"`` (uint8 frames) or ``"mono16"`` (uint16 frames)."""
-        ...
+        return self._encoding
 
-    def open(self) -> None:
-        """Acquire the device."""
-        ...
-
-    def close(self) -> None:
-        """Release the device; safe to call twice."""
-        ...
+    @property
+    def source(self) -> str:
+        """The camera as named in messages."""
+        return type(self).__name__
 
     def grab(self, *, timeout_s: float) -> np.ndarray:
         """Capture one frame now.
@@ -138,12 +168,24 @@ class Camera(Protocol):
         Raises
         ------
         CameraError
-            If no valid frame arrives within ``timeout_s``.
+            If the camera is not open, or no valid frame arrives within ``timeout_s``.
+        ValueError
+            If ``timeout_s`` is not > 0.
         """
-        ...
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+        if not self.is_open:
+            raise CameraError(f"{self.source} is not open; call open() first")
+        image = self._frame(timeout_s)
+        self.frames_grabbed += 1
+        return image
+
+    @abstractmethod
+    def _frame(self, timeout_s: float) -> np.ndarray:
+        """One checked frame of the open camera (``grab`` without its checks)."""
 
 
-class SimulatedCamera:
+class SimulatedCamera(Camera):
     """Camera whose frames are rendered from the LEDs lit at grab time.
 
     Parameters
@@ -170,63 +212,30 @@ class SimulatedCamera:
         height: int,
         encoding: str = "mono8",
     ) -> None:
-        if encoding not in ENCODING_DTYPES:
-            raise ValueError(f"encoding {encoding!r} is not one of {sorted(ENCODING_DTYPES)}")
+        check_encoding(encoding)
         if width < 1 or height < 1:
             raise ValueError(f"frame size {width}x{height} must be positive")
+        super().__init__(width=width, height=height, encoding=encoding)
         self._render = render
         self._lit_leds = lit_leds
-        self._width = width
-        self._height = height
-        self._encoding = encoding
         self._open = False
-        self.frames_grabbed = 0
-        """Number of frames delivered since construction."""
-
-    @property
-    def width(self) -> int:
-        return self._width
-
-    @property
-    def height(self) -> int:
-        return self._height
-
-    @property
-    def encoding(self) -> str:
-        return self._encoding
 
     @property
     def is_open(self) -> bool:
         return self._open
 
-    def open(self) -> None:
+    def _acquire(self) -> None:
         self._open = True
 
-    def close(self) -> None:
+    def _release(self) -> None:
         self._open = False
 
-    def __enter__(self) -> SimulatedCamera:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def grab(self, *, timeout_s: float) -> np.ndarray:
-        """Render one frame of the LEDs lit now; see ``Camera.grab``.
+    def _frame(self, timeout_s: float) -> np.ndarray:
+        """Render one frame of the LEDs lit now.
 
         A failure of ``render`` is reported as ``CameraError`` (as a real camera's failure
         to deliver a frame would be), with the original exception chained.
         """
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
-        if not self._open:
-            raise CameraError("SimulatedCamera is not open; call open() first")
         try:
             lit = tuple(sorted(self._lit_leds()))
         except FingerpsDriverError as exc:
@@ -248,5 +257,4 @@ class SimulatedCamera:
                 f"frame of dtype {image.dtype} for encoding {self._encoding} "
                 f"(needs {ENCODING_DTYPES[self._encoding]})"
             )
-        self.frames_grabbed += 1
         return image

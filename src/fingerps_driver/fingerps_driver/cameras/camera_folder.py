@@ -17,18 +17,24 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from types import TracebackType
 
 import cv2
 import numpy as np
 
-from fingerps_driver.cameras.camera import ENCODING_DTYPES, CameraError, to_mono
+from fingerps_driver.cameras.camera import (
+    ENCODING_DTYPES,
+    Camera,
+    CameraError,
+    check_encoding,
+    check_requested_size,
+    to_mono,
+)
 from fingerps_driver.errors import FingerpsDriverError
 
 LIST_FILE = "filenames.txt"
 
 
-class FolderCamera:
+class FolderCamera(Camera):
     """Replays the images of a DiLiGenT-layout folder, one per LED.
 
     Parameters
@@ -58,10 +64,10 @@ class FolderCamera:
     ) -> None:
         if led_count < 1:
             raise ValueError(f"led_count {led_count} must be >= 1")
-        if encoding and encoding not in ENCODING_DTYPES:
-            raise ValueError(f"encoding {encoding!r} is not one of {sorted(ENCODING_DTYPES)}")
-        if width < 0 or height < 0 or (width == 0) != (height == 0):
-            raise ValueError(f"size {width}x{height}: give both (> 0) or neither (0)")
+        if encoding:
+            check_encoding(encoding)
+        check_requested_size(width, height, name="size")
+        super().__init__(width=width, height=height, encoding=encoding or "mono8")
         self._folder = Path(folder)
         self._lit_leds = lit_leds
         self._led_count = led_count
@@ -69,27 +75,10 @@ class FolderCamera:
         self._wanted_encoding = encoding
         self._images: tuple[np.ndarray, ...] = ()
         self._names: tuple[str, ...] = ()
-        self._width, self._height = width, height
-        self._encoding = encoding or "mono8"
-        self.frames_grabbed = 0
-        """Frames returned by ``grab`` since construction."""
 
     @property
     def source(self) -> str:
         return f"image folder {self._folder}"
-
-    @property
-    def width(self) -> int:
-        return self._width
-
-    @property
-    def height(self) -> int:
-        return self._height
-
-    @property
-    def encoding(self) -> str:
-        """Known after ``open`` (from the images) unless given."""
-        return self._encoding
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -100,8 +89,8 @@ class FolderCamera:
     def is_open(self) -> bool:
         return bool(self._images)
 
-    def open(self) -> None:
-        """Read and check the images of the LEDs.
+    def _acquire(self) -> None:
+        """Read and check the images of the LEDs; ``encoding`` and the size are known then.
 
         Raises
         ------
@@ -109,8 +98,6 @@ class FolderCamera:
             No ``filenames.txt``, fewer images than LEDs, an image missing or unreadable, or
             images of different sizes or bit depths; the message names the file.
         """
-        if self._images:
-            return
         listing = self._folder / LIST_FILE
         try:
             lines = listing.read_text(encoding="utf-8").splitlines()
@@ -164,28 +151,12 @@ class FolderCamera:
                 "takes the images' size)")
         return image
 
-    def close(self) -> None:
-        """Forget the images. Safe to call twice."""
+    def _release(self) -> None:
+        """Forget the images."""
         self._images = ()
 
-    def __enter__(self) -> FolderCamera:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def grab(self, *, timeout_s: float) -> np.ndarray:
-        """The image of the LED lit now (sum if several, black if none); see ``Camera.grab``."""
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
-        if not self._images:
-            raise CameraError(f"{self.source} is not open; call open() first")
+    def _frame(self, timeout_s: float) -> np.ndarray:
+        """The image of the LED lit now (sum if several, black if none)."""
         try:
             lit = sorted(set(self._lit_leds()))
         except FingerpsDriverError as exc:
@@ -203,5 +174,4 @@ class FolderCamera:
         else:
             total = np.sum([self._images[led] for led in lit], axis=0, dtype=np.uint32)
             image = np.minimum(total, np.iinfo(dtype).max).astype(dtype)
-        self.frames_grabbed += 1
         return image

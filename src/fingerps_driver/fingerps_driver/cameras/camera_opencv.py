@@ -23,13 +23,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from types import TracebackType
 from typing import Any
 
 import cv2
 import numpy as np
 
-from fingerps_driver.cameras.camera import ENCODING_DTYPES, CameraError, check_frame, to_mono
+from fingerps_driver.cameras.camera import (
+    Camera,
+    CameraError,
+    check_encoding,
+    check_frame,
+    check_requested_size,
+    to_mono,
+)
 
 V4L2_EXPOSURE_UNIT_S = 100e-6
 """One step of V4L2's exposure_time_absolute control."""
@@ -45,7 +51,7 @@ def parse_device(device: str) -> str | int:
     return int(text) if text.isdigit() else text
 
 
-class OpenCvCamera:
+class OpenCvCamera(Camera):
     """Monochrome frames from ``cv2.VideoCapture``.
 
     Parameters
@@ -92,11 +98,8 @@ class OpenCvCamera:
         api: int = cv2.CAP_V4L2,
         capture_factory: Callable[[Any, int], Any] = cv2.VideoCapture,
     ) -> None:
-        if pixel_format not in ENCODING_DTYPES:
-            raise ValueError(
-                f"pixel_format {pixel_format!r} is not one of {sorted(ENCODING_DTYPES)}")
-        if width < 0 or height < 0 or (width == 0) != (height == 0):
-            raise ValueError(f"resolution {width}x{height}: give both (> 0) or neither (0)")
+        check_encoding(pixel_format, name="pixel_format")
+        check_requested_size(width, height, name="resolution")
         if not (math.isfinite(fps) and fps >= 0):
             raise ValueError(f"fps {fps} must be >= 0")
         if not (math.isfinite(exposure_s) and exposure_s >= 0):
@@ -105,47 +108,30 @@ class OpenCvCamera:
             raise ValueError(f"fourcc {fourcc!r} must be four characters")
         if discard_frames < 0:
             raise ValueError(f"discard_frames {discard_frames} must be >= 0")
+        super().__init__(width=width, height=height, encoding=pixel_format)
         self._device = device
         self._size = (width, height)
         self._fps = fps
         self._exposure_s = exposure_s
         self._gain = gain
-        self._encoding = pixel_format
         self._fourcc = fourcc or (MONO16_FOURCC if pixel_format == "mono16" else "")
         self._discard = discard_frames
         self._api = api
         self._factory = capture_factory
         self._capture: Any = None
-        self._width = width
-        self._height = height
         self._timeout_ms = 0.0
         self.refused_settings: list[str] = []
         """Settings the backend refused at ``open`` or later (``"fps=60"``...)."""
-        self.frames_grabbed = 0
-        """Frames returned by ``grab`` since construction."""
 
     @property
     def source(self) -> str:
-        """The camera as named in messages."""
         return f"camera {self._device!r}"
-
-    @property
-    def width(self) -> int:
-        return self._width
-
-    @property
-    def height(self) -> int:
-        return self._height
-
-    @property
-    def encoding(self) -> str:
-        return self._encoding
 
     @property
     def is_open(self) -> bool:
         return self._capture is not None
 
-    def open(self) -> None:
+    def _acquire(self) -> None:
         """Open the device, apply the settings and read a first frame to learn its size.
 
         Raises
@@ -154,8 +140,6 @@ class OpenCvCamera:
             The device cannot be opened, delivers no frame, or a frame of another size
             or bit depth than asked for. The message names the device.
         """
-        if self._capture is not None:
-            return
         capture = self._factory(self._device, self._api)
         if not capture.isOpened():
             capture.release()
@@ -180,23 +164,10 @@ class OpenCvCamera:
             self.close()
             raise
 
-    def close(self) -> None:
-        """Release the device. Safe to call twice."""
+    def _release(self) -> None:
         capture, self._capture = self._capture, None
         if capture is not None:
             capture.release()
-
-    def __enter__(self) -> OpenCvCamera:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def set_exposure(self, exposure_s: float) -> None:
         """Manual exposure of ``exposure_s`` seconds from the next frame on (if it changed).
@@ -212,13 +183,9 @@ class OpenCvCamera:
         self._exposure_s = exposure_s
         self._set_exposure()
 
-    def grab(self, *, timeout_s: float) -> np.ndarray:
-        """One frame exposed after this call began; see ``Camera.grab``."""
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+    def _frame(self, timeout_s: float) -> np.ndarray:
+        """One frame exposed after this call began."""
         capture = self._capture
-        if capture is None:
-            raise CameraError(f"{self.source} is not open; call open() first")
         timeout_ms = round(timeout_s * 1e3)
         if self._api == cv2.CAP_V4L2 and timeout_ms != self._timeout_ms:
             self._timeout_ms = timeout_ms
@@ -230,9 +197,7 @@ class OpenCvCamera:
         if not ok or frame is None:
             raise CameraError(f"no frame from {self.source} within {timeout_s:.3f} s")
         image = to_mono(frame, encoding=self._encoding, source=self.source)
-        check_frame(image, width=self._width, height=self._height, source=self.source)
-        self.frames_grabbed += 1
-        return image
+        return check_frame(image, width=self._width, height=self._height, source=self.source)
 
     # -- settings ----------------------------------------------------------------------
 
