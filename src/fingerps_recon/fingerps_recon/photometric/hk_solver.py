@@ -78,6 +78,7 @@ import numpy as np
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.hk_model import PhaseConvention, SkinParams, henyey_greenstein
 from fingerps_recon.photometric.kernel_threads import numba_threads, thread_limit
+from fingerps_recon.photometric.light_intensities import checked_intensities
 
 # 1/c_i and 1/c_r in the derivatives are capped at 1 / _DERIVATIVE_FLOOR.
 _DERIVATIVE_FLOOR = 1e-3
@@ -1066,19 +1067,7 @@ def _check(
         raise FingerpsReconError(
             f"views must have shape (3,) or (H, W, 3) = ({h}, {w}, 3), got {vw.shape}"
         )
-    if intensities is None:
-        e = np.ones(k)
-    else:
-        e = np.asarray(intensities)
-        if e.shape not in ((k,), (k, h, w)):
-            raise FingerpsReconError(
-                f"intensities must have shape (K,) = ({k},) or (K, H, W) = ({k}, {h}, {w}), "
-                f"got {e.shape}"
-            )
-        if e.ndim == 1:
-            e = e.astype(np.float64)
-            if not np.all(np.isfinite(e) & (e > 0)):
-                raise FingerpsReconError(f"intensities must be finite and > 0, got {e}")
+    e = checked_intensities(intensities, shape=(k, h, w))
     use_in = None
     if usable is not None:
         use_in = np.asarray(usable)

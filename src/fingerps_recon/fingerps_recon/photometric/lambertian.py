@@ -24,6 +24,8 @@ import numpy as np
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric import lambertian_kernel
 from fingerps_recon.photometric.kernel_threads import numba_threads
+from fingerps_recon.photometric.light_intensities import checked_intensities
+from fingerps_recon.photometric.mask_box import mask_bounding_box
 
 # A pixel's (scaled) light directions are degenerate (e.g. coplanar) where
 # det(A) <= this * (trace(A) / 3)**3, i.e. for A's eigenvalues (l, l, e) where e / l <= 3e-6
@@ -180,17 +182,7 @@ def solve_lambertian(
             f"images must be integers or floats, got dtype {imgs.dtype}; convert them first")
     if lgt.ndim == 2 and not np.all(np.isfinite(lgt)):
         raise FingerpsReconError("lights contain non-finite values; check the calibration")
-    if intensities is None:
-        e = np.ones(k)
-    else:
-        e = np.asarray(intensities)
-        if e.shape not in ((k,), (k, h, w)):
-            raise FingerpsReconError(
-                f"intensities must have shape (K,) = ({k},) or (K, H, W) = ({k}, {h}, {w}), "
-                f"got {e.shape}"
-            )
-        if e.ndim == 1 and not np.all(np.isfinite(e) & (e > 0)):
-            raise FingerpsReconError(f"intensities must be finite and > 0, got {e}")
+    e = checked_intensities(intensities, shape=(k, h, w))
     if mask is None:
         m = np.ones((h, w), dtype=bool)
     else:
@@ -199,7 +191,7 @@ def solve_lambertian(
             raise FingerpsReconError(
                 f"mask must be a bool array of shape (H, W) = ({h}, {w}), got {m.shape} {m.dtype}"
             )
-    box = _bounding_box(m)
+    box = mask_bounding_box(m)
 
     normals = np.zeros((h, w, 3), dtype=np.float32)
     albedo = np.zeros((h, w), dtype=np.float32)
@@ -209,28 +201,20 @@ def solve_lambertian(
     if box is not None:
         values = _kernel_images(imgs)
         lo, hi = _levels(values.dtype, shadow_level, saturation_level)
-        chunks = (box[1] - box[0]) * -(-(box[3] - box[2]) // lambertian_kernel.CHUNK)
+        rows, cols = box
+        chunks = (rows.stop - rows.start) * -(-(cols.stop - cols.start) // lambertian_kernel.CHUNK)
         parts = np.zeros((chunks, 3))
         with numba_threads():
             lambertian_kernel.solve(
                 values, _kernel_lights(lgt), _kernel_intensities(e), m,
-                np.array(box, dtype=np.int64), lo, hi, np.float32(_MIN_RELATIVE_DETERMINANT),
+                np.array((rows.start, rows.stop, cols.start, cols.stop), dtype=np.int64), lo, hi,
+                np.float32(_MIN_RELATIVE_DETERMINANT),
                 normals, albedo, valid, used, parts,
             )
         total = parts.sum(axis=0)  # in chunk order: the same whatever the threads
         sums = (float(total[0]), float(total[1]), int(total[2]))
     return LambertianResult(normals=normals, albedo=albedo, valid=valid, used_lights=used,
                             misfit_sq=sums[0], observed_sum=sums[1], misfit_count=sums[2])
-
-
-def _bounding_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    """(first row, last row + 1, first column, last column + 1) of the smallest rectangle
-    holding every mask pixel; None for an empty mask."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 def _kernel_images(images: np.ndarray) -> np.ndarray:

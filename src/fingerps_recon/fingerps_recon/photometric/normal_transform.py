@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.photometric.mask_box import mask_bounding_box
 
 
 def enhance_ridges(
@@ -62,7 +63,7 @@ def enhance_ridges(
             )
         # Outside the mask's bounding box every normal is zero and stays zero; the box
         # filter's zero border at the box's sides sees the same zeros.
-        box = _bounding_box(m)
+        box = mask_bounding_box(m)
         if box is None:
             return enhanced
         m = m[box]
@@ -110,12 +111,3 @@ def _inverse_norm(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     """1 / |(x, y, z)| per pixel, 0 where the vector is zero."""
     norm = np.sqrt(x * x + y * y + z * z)
     return np.divide(1, norm, out=np.zeros_like(norm), where=norm > 0)
-
-
-def _bounding_box(mask: np.ndarray) -> tuple[slice, slice] | None:
-    """Slices of the smallest rectangle holding every mask pixel; None for an empty mask."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)

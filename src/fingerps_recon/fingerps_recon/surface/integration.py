@@ -92,6 +92,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.photometric.mask_box import mask_bounding_box
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
 
 _SMALL_COMPONENT = 2048
@@ -169,7 +170,7 @@ def integrate_normals(
     if not (np.isfinite(pixel_size_m) and pixel_size_m > 0):
         raise FingerpsReconError(f"pixel_size_m must be a positive number, got {pixel_size_m}")
     height = np.full(m.shape, np.nan, dtype=np.float32)
-    box = _bounding_box(m)
+    box = mask_bounding_box(m)
     if box is None:
         return height
     nb, mb = n[box], m[box]
@@ -235,7 +236,7 @@ def integrate_normals_perspective(
             f"working_distance_m must be a positive number, got {working_distance_m}"
         )
     depth = np.full(m.shape, np.nan, dtype=np.float32)
-    box = _bounding_box(m)
+    box = mask_bounding_box(m)
     if box is None:
         return depth
     du, dv = _log_depth_steps(
@@ -280,15 +281,6 @@ def _checked(
             f"method must be an IntegrationMethod (FAST or EXACT), got {method!r}"
         )
     return n, m
-
-
-def _bounding_box(mask: np.ndarray) -> tuple[slice, slice] | None:
-    """Slices of the smallest rectangle holding every mask pixel; None for an empty mask."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
 # ----------------------------------------------------------------------------- steps
