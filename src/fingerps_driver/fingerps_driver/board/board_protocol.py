@@ -67,6 +67,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
+from typing import TypeVar
 
 from fingerps_driver.errors import FingerpsDriverError
 
@@ -78,6 +79,7 @@ SEQ_MODULO = 256
 MAX_LEVEL = 255
 _FORBIDDEN = frozenset(",*#!")
 _HEX_DIGITS = frozenset("0123456789abcdefABCDEF")
+_E = TypeVar("_E", bound=Enum)
 
 
 class Command(Enum):
@@ -90,15 +92,10 @@ class Command(Enum):
     LEVEL = "LEVEL"
     STATE = "STATE"
 
-
-_ARG_COUNT = {
-    Command.PING: 0,
-    Command.INFO: 0,
-    Command.LEDS: 1,
-    Command.OFF: 0,
-    Command.LEVEL: 2,
-    Command.STATE: 0,
-}
+    @property
+    def arg_count(self) -> int:
+        """Arguments the command takes: ``LEDS`` a mask, ``LEVEL`` an index and a level."""
+        return {"LEDS": 1, "LEVEL": 2}.get(self.value, 0)
 
 
 class ErrorCode(Enum):
@@ -234,9 +231,9 @@ class Request:
         _check_seq(self.seq)
         if not isinstance(self.command, Command):
             raise ValueError(f"command {self.command!r} is not a Command")
-        if len(self.args) != _ARG_COUNT[self.command]:
+        if len(self.args) != self.command.arg_count:
             raise ValueError(
-                f"{self.command.value} takes {_ARG_COUNT[self.command]} argument(s), "
+                f"{self.command.value} takes {self.command.arg_count} argument(s), "
                 f"got {len(self.args)}"
             )
         if self.command is Command.LEDS:
@@ -342,6 +339,14 @@ def _unframe(line: bytes, sigil: bytes) -> tuple[int, list[str]]:
     return seq, fields[1:]
 
 
+def _token(kind: type[_E], token: str, code: ErrorCode, what: str, seq: int) -> _E:
+    """The member of ``kind`` spelt ``token``; else ``ProtocolError`` ``code``, "unknown ..."."""
+    try:
+        return kind(token)
+    except ValueError:
+        raise ProtocolError(code, f"unknown {what} {token!r}", seq=seq) from None
+
+
 def _read_seq(token: str) -> int | None:
     if 1 <= len(token) <= 3 and token.isascii() and token.isdigit() and int(token) < SEQ_MODULO:
         return int(token)
@@ -359,17 +364,12 @@ def decode_request(line: bytes) -> Request:
     seq, fields = _unframe(line, REQUEST_SIGIL)
     if not fields:
         raise ProtocolError(ErrorCode.BAD_FRAME, "request without a command", seq=seq)
-    try:
-        command = Command(fields[0])
-    except ValueError:
-        raise ProtocolError(
-            ErrorCode.UNKNOWN_COMMAND, f"unknown command {fields[0]!r}", seq=seq
-        ) from None
+    command = _token(Command, fields[0], ErrorCode.UNKNOWN_COMMAND, "command", seq)
     tokens = fields[1:]
-    if len(tokens) != _ARG_COUNT[command]:
+    if len(tokens) != command.arg_count:
         raise ProtocolError(
             ErrorCode.BAD_ARGUMENT,
-            f"{command.value} takes {_ARG_COUNT[command]} argument(s), got {len(tokens)}",
+            f"{command.value} takes {command.arg_count} argument(s), got {len(tokens)}",
             seq=seq,
         )
     try:
@@ -396,12 +396,7 @@ def decode_reply(line: bytes) -> Reply:
     if fields and fields[0] == "OK":
         return Reply(seq, tuple(fields[1:]))
     if len(fields) == 3 and fields[0] == "ERR":
-        try:
-            code = ErrorCode(fields[1])
-        except ValueError:
-            raise ProtocolError(
-                ErrorCode.BAD_FRAME, f"unknown error code {fields[1]!r}", seq=seq
-            ) from None
+        code = _token(ErrorCode, fields[1], ErrorCode.BAD_FRAME, "error code", seq)
         return Reply(seq, error=code, message=fields[2])
     raise ProtocolError(ErrorCode.BAD_FRAME, "reply status is not OK or ERR,<code>,<text>", seq=seq)
 

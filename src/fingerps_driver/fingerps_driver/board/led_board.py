@@ -137,14 +137,16 @@ class LedBoard(Device):
         return self._port
 
     @property
-    def is_open(self) -> bool:
-        return self._serial is not None
-
-    @property
     def acknowledged_mask(self) -> int | None:
         """The LED mask the board last acknowledged (``set_leds``/``all_off``); None when
         unknown (not open, just opened, or a switch failed)."""
         return self._acknowledged
+
+    # -- lifecycle (``Device``) ------------------------------------------------------
+
+    @property
+    def is_open(self) -> bool:
+        return self._serial is not None
 
     def _acquire(self) -> None:
         """Open the port. Raises ``BoardNotFoundError`` if it does not exist."""

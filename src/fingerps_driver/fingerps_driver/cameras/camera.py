@@ -120,17 +120,20 @@ class Camera(Device):
     The base owns the lifecycle (``open``/``close``/``with`` of ``capture.device.Device``),
     the size and encoding, the checks of ``grab`` (a positive timeout, an open camera) and
     the frame counter. A backend implements only what differs: ``is_open``, ``_acquire``,
-    ``_release`` and ``_frame`` (and ``source``, the camera as named in messages).
+    ``_release`` and ``_frame``.
 
     Parameters
     ----------
+    source : str
+        The camera as named in messages (``"camera '/dev/video0'"``).
     width, height : int
         Frame size in pixels; a backend that learns it at ``open`` sets it then.
     encoding : str
         ``"mono8"`` or ``"mono16"``; likewise.
     """
 
-    def __init__(self, *, width: int, height: int, encoding: str) -> None:
+    def __init__(self, source: str, *, width: int, height: int, encoding: str) -> None:
+        self._source = source
         self._width = width
         self._height = height
         self._encoding = encoding
@@ -151,11 +154,6 @@ class Camera(Device):
     def encoding(self) -> str:
         """``"mono8"`` (uint8 frames) or ``"mono16"`` (uint16 frames)."""
         return self._encoding
-
-    @property
-    def source(self) -> str:
-        """The camera as named in messages."""
-        return type(self).__name__
 
     def grab(self, *, timeout_s: float) -> np.ndarray:
         """Capture one frame now.
@@ -179,6 +177,11 @@ class Camera(Device):
         image = self._frame(timeout_s)
         self.frames_grabbed += 1
         return image
+
+    @property
+    def source(self) -> str:
+        """The camera as named in messages."""
+        return self._source
 
     @abstractmethod
     def _frame(self, timeout_s: float) -> np.ndarray:
@@ -215,7 +218,7 @@ class SimulatedCamera(Camera):
         check_encoding(encoding)
         if width < 1 or height < 1:
             raise ValueError(f"frame size {width}x{height} must be positive")
-        super().__init__(width=width, height=height, encoding=encoding)
+        super().__init__("SimulatedCamera", width=width, height=height, encoding=encoding)
         self._render = render
         self._lit_leds = lit_leds
         self._open = False

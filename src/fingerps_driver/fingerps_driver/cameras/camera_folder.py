@@ -67,7 +67,8 @@ class FolderCamera(Camera):
         if encoding:
             check_encoding(encoding)
         check_requested_size(width, height, name="size")
-        super().__init__(width=width, height=height, encoding=encoding or "mono8")
+        super().__init__(f"image folder {Path(folder)}", width=width, height=height,
+                         encoding=encoding or "mono8")
         self._folder = Path(folder)
         self._lit_leds = lit_leds
         self._led_count = led_count
@@ -75,10 +76,6 @@ class FolderCamera(Camera):
         self._wanted_encoding = encoding
         self._images: tuple[np.ndarray, ...] = ()
         self._names: tuple[str, ...] = ()
-
-    @property
-    def source(self) -> str:
-        return f"image folder {self._folder}"
 
     @property
     def names(self) -> tuple[str, ...]:

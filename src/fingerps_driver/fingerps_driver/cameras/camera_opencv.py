@@ -108,7 +108,7 @@ class OpenCvCamera(Camera):
             raise ValueError(f"fourcc {fourcc!r} must be four characters")
         if discard_frames < 0:
             raise ValueError(f"discard_frames {discard_frames} must be >= 0")
-        super().__init__(width=width, height=height, encoding=pixel_format)
+        super().__init__(f"camera {device!r}", width=width, height=height, encoding=pixel_format)
         self._device = device
         self._size = (width, height)
         self._fps = fps
@@ -122,10 +122,6 @@ class OpenCvCamera(Camera):
         self._timeout_ms = 0.0
         self.refused_settings: list[str] = []
         """Settings the backend refused at ``open`` or later (``"fps=60"``...)."""
-
-    @property
-    def source(self) -> str:
-        return f"camera {self._device!r}"
 
     @property
     def is_open(self) -> bool:

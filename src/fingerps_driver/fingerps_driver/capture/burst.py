@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -120,6 +121,15 @@ class _StepFailedError(Exception):
         super().__init__(f"{where}: {detail}")
 
 
+@contextmanager
+def _step(step: str, led: int | None) -> Iterator[None]:
+    """Report a driver error raised within as ``_StepFailedError`` naming ``step`` and ``led``."""
+    try:
+        yield
+    except FingerpsDriverError as exc:
+        raise _StepFailedError(step, led, exc) from exc
+
+
 def _per_led(name: str, value: float | Sequence[float], count: int) -> tuple[float, ...]:
     values = (value,) * count if isinstance(value, (int, float)) else tuple(value)
     if len(values) != count:
@@ -206,70 +216,45 @@ def capture_burst(
         camera.height, camera.width)
     dtype = ENCODING_DTYPES.get(camera.encoding)
 
+    exposure_control = camera if isinstance(camera, ExposureControl) else None
+
+    def expose(exposure: float, led: int | None) -> None:
+        """Set the camera's exposure, if it can be set, before ``led`` is lit."""
+        if exposure_control is not None:
+            with _step("exposure", led):
+                exposure_control.set_exposure(exposure)
+
+    def shoot(step: str, led: int, exposure: float, code: int) -> CapturedFrame:
+        """Light ``led`` alone, wait for the acknowledgement, grab its frame as ``step``."""
+        expose(exposure, led)
+        with _step("switch", led):
+            acked = board.set_leds(1 << led)
+        if acked != 1 << led:
+            raise _StepFailedError(
+                "switch", led, f"board acknowledged mask {acked:#x}, not {1 << led:#x}")
+        stamp = clock()
+        image = _grab(camera, step, led, exposure + grab_timeout_s, shape, dtype)
+        return CapturedFrame(led, image, stamp, exposure, code / MAX_LEVEL)
+
     start = time.monotonic()
     try:
         for led, code in programmed.items():
-            try:
+            with _step("level", led):
                 board.set_level(led, code)
-            except FingerpsDriverError as exc:
-                raise _StepFailedError("level", led, exc) from exc
-        frames = []
-        exposure_control = camera if isinstance(camera, ExposureControl) else None
-        for led, exposure, code in zip(order, exposures, codes, strict=True):
-            if exposure_control is not None:
-                try:
-                    exposure_control.set_exposure(exposure)
-                except FingerpsDriverError as exc:
-                    raise _StepFailedError("exposure", led, exc) from exc
-            try:
-                acked = board.set_leds(1 << led)
-            except FingerpsDriverError as exc:
-                raise _StepFailedError("switch", led, exc) from exc
-            if acked != 1 << led:
-                raise _StepFailedError(
-                    "switch", led, f"board acknowledged mask {acked:#x}, not {1 << led:#x}"
-                )
-            stamp = clock()
-            image = _grab(camera, "grab", led, exposure + grab_timeout_s, shape, dtype)
-            frames.append(CapturedFrame(led, image, stamp, exposure, code / MAX_LEVEL))
-        repeat = None
-        if repeat_first:
-            led, exposure, code = order[0], exposures[0], codes[0]
-            if exposure_control is not None:
-                try:
-                    exposure_control.set_exposure(exposure)
-                except FingerpsDriverError as exc:
-                    raise _StepFailedError("exposure", led, exc) from exc
-            try:
-                acked = board.set_leds(1 << led)
-            except FingerpsDriverError as exc:
-                raise _StepFailedError("switch", led, exc) from exc
-            if acked != 1 << led:
-                raise _StepFailedError(
-                    "switch", led, f"board acknowledged mask {acked:#x}, not {1 << led:#x}")
-            stamp = clock()
-            image = _grab(camera, "repeat", led, exposure + grab_timeout_s, shape, dtype)
-            repeat = CapturedFrame(led, image, stamp, exposure, code / MAX_LEVEL)
-        try:
+        frames = [shoot("grab", *entry) for entry in zip(order, exposures, codes, strict=True)]
+        repeat = shoot("repeat", order[0], exposures[0], codes[0]) if repeat_first else None
+        with _step("off", None):
             board.all_off()
-        except FingerpsDriverError as exc:
-            raise _StepFailedError("off", None, exc) from exc
         dark = None
         if with_dark:
             exposure = max(exposures)
-            if exposure_control is not None:
-                try:
-                    exposure_control.set_exposure(exposure)
-                except FingerpsDriverError as exc:
-                    raise _StepFailedError("exposure", None, exc) from exc
+            expose(exposure, None)
             stamp = clock()
             image = _grab(camera, "dark", None, exposure + grab_timeout_s, shape, dtype)
             dark = CapturedFrame(DARK_LED, image, stamp, exposure, 0.0)
     except _StepFailedError as exc:
-        try:
+        with suppress(FingerpsDriverError):
             board.all_off()
-        except FingerpsDriverError:
-            pass
         reason = f"burst {burst_id} failed at {exc}"
         return BurstResult(burst_id, (), None, False, reason, time.monotonic() - start,
                            failed_step=exc.step, error_type=exc.error_type)
@@ -286,10 +271,8 @@ def _grab(
     dtype: np.dtype | None,
 ) -> np.ndarray:
     """Grab one frame and check it; raise ``_StepFailedError`` naming ``step`` and ``led``."""
-    try:
+    with _step(step, led):
         image = camera.grab(timeout_s=timeout_s)
-    except FingerpsDriverError as exc:
-        raise _StepFailedError(step, led, exc) from exc
     if not isinstance(image, np.ndarray):
         raise _StepFailedError(step, led, f"camera returned {type(image).__name__}, not an image")
     if image.shape != shape:

@@ -55,25 +55,25 @@ def check_led_order(order: Sequence[int], led_count: int) -> str | None:
 
 def check_exposures(values: Sequence[float] | None, led_count: int) -> str | None:
     """Reason a per-LED exposure list is refused, or None (None/empty = not used)."""
-    if not values:
-        return None
-    if len(values) != led_count:
-        return f"has {len(values)} entries for {led_count} LEDs; give one per LED, or none"
-    bad = [v for v in values if not (math.isfinite(v) and MIN_EXPOSURE_S <= v <= MAX_EXPOSURE_S)]
-    if bad:
-        return f"holds {bad}: exposures are seconds in {MIN_EXPOSURE_S:g}..{MAX_EXPOSURE_S:g}"
-    return None
+    return _check_per_led(values, led_count, MIN_EXPOSURE_S, MAX_EXPOSURE_S,
+                          f"exposures are seconds in {MIN_EXPOSURE_S:g}..{MAX_EXPOSURE_S:g}")
 
 
 def check_levels(values: Sequence[float] | None, led_count: int) -> str | None:
     """Reason a per-LED level list is refused, or None (None/empty = not used)."""
+    return _check_per_led(values, led_count, 0.0, 1.0, "levels are in 0..1")
+
+
+def _check_per_led(values: Sequence[float] | None, led_count: int, low: float, high: float,
+                   rule: str) -> str | None:
+    """Reason a per-LED list is refused: not one entry per LED, or values outside low..high."""
     if not values:
         return None
     if len(values) != led_count:
         return f"has {len(values)} entries for {led_count} LEDs; give one per LED, or none"
-    bad = [v for v in values if not (math.isfinite(v) and 0.0 <= v <= 1.0)]
+    bad = [v for v in values if not (math.isfinite(v) and low <= v <= high)]
     if bad:
-        return f"holds {bad}: levels are in 0..1"
+        return f"holds {bad}: {rule}"
     return None
 
 
