@@ -59,27 +59,20 @@ _FLAT_HEADER = """\
 
 
 @dataclass(frozen=True, eq=False)
-class LightsRecord:
-    """A light calibration with what it was made with.
+class CalibrationStamp:
+    """Which camera a saved calibration is for and when it was made (the first fields of
+    `LightsRecord` and `FlatFieldRecord`).
 
     Attributes
     ----------
     camera_name, frame_id : str
     stamp_ns : int
         When the calibration was made, ns since the epoch (UTC).
-    image_width, image_height : int
-    camera_matrix : (3, 3) float64
-        Intrinsics the calibration used.
-    lights : CombinedLights
     """
 
     camera_name: str
     frame_id: str
     stamp_ns: int
-    image_width: int
-    image_height: int
-    camera_matrix: np.ndarray
-    lights: CombinedLights
 
     @property
     def date(self) -> str:
@@ -88,13 +81,30 @@ class LightsRecord:
 
 
 @dataclass(frozen=True, eq=False)
-class FlatFieldRecord:
-    """A flat field with what it was made with.
+class LightsRecord(CalibrationStamp):
+    """A light calibration with the camera, time (`CalibrationStamp`) and intrinsics it was
+    made with.
 
     Attributes
     ----------
-    camera_name, frame_id : str
-    stamp_ns : int
+    image_width, image_height : int
+    camera_matrix : (3, 3) float64
+        Intrinsics the calibration used.
+    lights : CombinedLights
+    """
+
+    image_width: int
+    image_height: int
+    camera_matrix: np.ndarray
+    lights: CombinedLights
+
+
+@dataclass(frozen=True, eq=False)
+class FlatFieldRecord(CalibrationStamp):
+    """A flat field with the camera and time it was made with (`CalibrationStamp`).
+
+    Attributes
+    ----------
     portions : (K, H, W) float32
     relative_intensities : (K,) float64
     fit_residuals : (K,) float64
@@ -102,18 +112,10 @@ class FlatFieldRecord:
     polynomial_degree : int
     """
 
-    camera_name: str
-    frame_id: str
-    stamp_ns: int
     portions: np.ndarray
     relative_intensities: np.ndarray
     fit_residuals: np.ndarray
     polynomial_degree: int
-
-    @property
-    def date(self) -> str:
-        """``stamp_ns`` as an ISO 8601 UTC date."""
-        return iso_date(self.stamp_ns)
 
 
 def iso_date(stamp_ns: int) -> str:
