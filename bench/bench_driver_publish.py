@@ -16,22 +16,22 @@ import os
 import random
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import rclpy
 from ament_index_python.packages import get_package_prefix
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
 
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import qos, topics
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from graph_harness import bench_node
 
 BURSTS = 30
 WARM_UP = 2
@@ -58,13 +58,9 @@ def run() -> dict[str, float]:
 
 
 def _measure(domain: int, driver: subprocess.Popen) -> dict[str, float]:
-    context = Context()
-    rclpy.init(context=context, domain_id=domain,
-               signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("fingerps_bench_publish", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    try:
+    with bench_node("fingerps_bench_publish", domain, watched=driver,
+                    watched_name="driver_node", period=0.02) as bench:
+        node, spin_until = bench.node, bench.spin_until
         counts = {"burst": 0, "frames": 0, "images": 0}
         diagnostics: list[dict[str, str]] = []
 
@@ -85,16 +81,6 @@ def _measure(domain: int, driver: subprocess.Popen) -> dict[str, float]:
                                  qos.SENSOR_QOS)
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, 10)
         client = node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
-
-        def spin_until(condition: Callable[[], object], what: str, timeout: float) -> None:
-            deadline = time.monotonic() + timeout
-            while not condition():
-                if driver.poll() is not None:
-                    raise RuntimeError(f"driver_node exited with {driver.returncode}")
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"timed out waiting for {what}")
-                executor.spin_once(timeout_sec=0.02)
-
         spin_until(client.service_is_ready, "the capture_burst service", 60.0)
         spin_until(lambda: node.count_publishers(f"{NS}/{topics.BURST}") >= 1
                    and node.count_publishers(f"{NS}/{topics.FRAMES}") >= 1,
@@ -120,10 +106,6 @@ def _measure(domain: int, driver: subprocess.Popen) -> dict[str, float]:
             "driver.publish_ms.max": float(last["publish_ms_max"]),
             "driver.service_ms.median": statistics.median(round_trips),
         }
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 if __name__ == "__main__":

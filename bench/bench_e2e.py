@@ -77,6 +77,7 @@ import numpy as np
 from fingerps_driver.demo import DemoError, call_service, executable
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures_report import exit_codes, print_figures
 from ros_domain import own_ros_domain
 
 DEMO_RUNS = 3
@@ -532,17 +533,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--no-demo", action="store_true", help="skip the demo runs")
     args = parser.parse_args(argv)
-    try:
+    with exit_codes("bench_e2e", BenchError, interrupted="the nodes were stopped"):
         figures = run(demo_runs=0 if args.no_demo else DEMO_RUNS)
-    except BenchError as exc:
-        print(f"bench_e2e: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("bench_e2e: interrupted (the nodes were stopped)", file=sys.stderr)
-        return 130
-    width = max(len(k) for k in figures)
-    for name, value in figures.items():
-        print(f"  {name:<{width}}  {value:12.3f}")
+    print_figures(figures)
     return 0
 
 

@@ -75,6 +75,7 @@ from check_fingerprint_pattern import (
     png_bytes,
     truth_keeps,
 )
+from figures_report import print_figures
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
@@ -518,7 +519,4 @@ def _table(f: dict[str, float]) -> None:
 
 
 if __name__ == "__main__":
-    figures = run()
-    width = max(len(k) for k in figures)
-    for name, value in figures.items():
-        print(f"  {name:<{width}}  {value:12.3f}")
+    print_figures(run())

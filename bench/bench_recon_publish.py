@@ -65,6 +65,8 @@ from typing import TextIO
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures_report import parse_repeats
+from graph_harness import bench_node
 from ros_domain import own_ros_domain
 
 RUNS = 21
@@ -217,10 +219,6 @@ def measure(repeats: int = RUNS) -> dict[str, list[float]]:
 
 def _publish_rounds(result: object, domain: int, repeats: int,
                     sink: subprocess.Popen) -> dict[str, list[float]]:
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image, PointCloud2
     from std_msgs.msg import Header, UInt32
 
@@ -228,13 +226,9 @@ def _publish_rounds(result: object, domain: int, repeats: int,
     from fingerps_ros.node_runner import use_large_data_profile
 
     use_large_data_profile()  # as every fingerps node does (the subscriber keeps the default)
-    context = Context()
-    rclpy.init(context=context, domain_id=domain,
-               signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("bench_recon_publish", namespace=topics.NAMESPACE, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    try:
+    with bench_node("bench_recon_publish", domain, namespace=topics.NAMESPACE, watched=sink,
+                    watched_name="the subscriber", period=0.005) as bench:
+        node, spin_until = bench.node, bench.spin_until
         names = {"normals": topics.NORMALS, "normal_map": topics.NORMAL_MAP,
                  "depth": topics.DEPTH, "albedo": topics.ALBEDO, "points": topics.POINTS}
         publishers = {
@@ -244,15 +238,6 @@ def _publish_rounds(result: object, domain: int, repeats: int,
         taken = [0]
         node.create_subscription(UInt32, ACK_TOPIC,
                                  lambda msg: taken.__setitem__(0, msg.data), 10)
-
-        def spin_until(condition: Callable[[], bool], what: str, timeout: float) -> None:
-            deadline = time.monotonic() + timeout
-            while not condition():
-                if sink.poll() is not None:
-                    raise RuntimeError(f"the subscriber exited with {sink.returncode}")
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"timed out waiting for {what}")
-                executor.spin_once(timeout_sec=0.005)
 
         spin_until(lambda: all(p.get_subscription_count() >= 1 for p in publishers.values())
                    and node.count_publishers(f"/{topics.NAMESPACE}/{ACK_TOPIC}") >= 1,
@@ -284,10 +269,6 @@ def _publish_rounds(result: object, domain: int, repeats: int,
                 for key, value in lap.items():
                     times.setdefault(key, []).append(value)
         return times
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def _stop(sink: subprocess.Popen, log: TextIO) -> dict:
@@ -336,14 +317,10 @@ def _print(times: dict[str, list[float]], repeats: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=RUNS,
-                        help=f"rounds, >= {MIN_RUNS} (default {RUNS})")
     parser.add_argument("--subscribe", action="store_true", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    args = parse_repeats(parser, argv, runs=RUNS, min_runs=MIN_RUNS, what="rounds")
     if args.subscribe:
         return _subscribe()
-    if args.repeats < MIN_RUNS:
-        parser.error(f"--repeats must be >= {MIN_RUNS}")
     _print(measure(args.repeats), args.repeats)
     return 0
 

@@ -60,6 +60,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -77,6 +78,9 @@ from fingerps_recon.surface.integration import (
     integrate_normals,
     integrate_normals_perspective,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures_report import parse_repeats
 
 RUNS = 15
 MIN_RUNS = 7
@@ -480,11 +484,7 @@ def _print(report: SpeedReport, repeats: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=RUNS,
-                        help=f"runs per stage, >= {MIN_RUNS} (default {RUNS})")
-    args = parser.parse_args(argv)
-    if args.repeats < MIN_RUNS:
-        parser.error(f"--repeats must be >= {MIN_RUNS}")
+    args = parse_repeats(parser, argv, runs=RUNS, min_runs=MIN_RUNS, what="runs per stage")
     _print(measure(args.repeats), args.repeats)
     return 0
 

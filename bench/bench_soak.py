@@ -62,6 +62,7 @@ from fingerps_driver.demo import DemoError, executable, stop_graph
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_e2e
 from bench_e2e import BenchError, Observer, graph_env, load_line, measure, wait_until
+from figures_report import exit_codes, print_figures
 from ros_domain import own_ros_domain
 
 DEFAULT_MINUTES = 30.0
@@ -421,18 +422,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.minutes <= 0:
         parser.error("--minutes must be positive")
-    try:
+    with exit_codes("bench_soak", BenchError, interrupted="the graph was stopped"):
         figures = run(args.minutes, None if args.record_outputs == "auto"
                       else args.record_outputs == "true")
-    except BenchError as exc:
-        print(f"bench_soak: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("bench_soak: interrupted (the graph was stopped)", file=sys.stderr)
-        return 130
-    width = max(len(k) for k in figures)
-    for name, value in figures.items():
-        print(f"  {name:<{width}}  {value:12.3f}")
+    print_figures(figures)
     if args.out is not None:
         merge_results(args.out, figures)
         print(f"merged {len(figures)} soak.* figures into {args.out}")

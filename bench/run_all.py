@@ -22,6 +22,7 @@ import bench_fingerprint
 import bench_recon_accuracy
 import bench_recon_publish
 import bench_recon_speed
+from figures_report import print_figures
 
 SEPARATE_PREFIXES = ("soak.",)
 """Figures of benchmarks not in ``make bench`` (``make soak``), kept when it rewrites the file."""
@@ -38,9 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     for bench in BENCHMARKS:
         print(f"\n## {bench.__name__}: {bench.__doc__.splitlines()[0]}")
         figures = bench.run()
-        width = max(len(k) for k in figures)
-        for name, value in figures.items():
-            print(f"  {name:<{width}}  {value:12.3f}")
+        print_figures(figures)
         results.update(figures)
     out = Path(args.out)
     # Figures of benchmarks run on their own (make soak) are kept; every other is this run's.

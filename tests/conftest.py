@@ -6,18 +6,36 @@
   camera calibration in the user's ``~/.ros/camera_info`` reaches a test's driver, and none
   a test stores reaches the user), set in ``os.environ`` so child processes and this
   process's rclpy all use them.
+- ``ros_node``: an rclpy node of the test process (``/fingerps_test``) in a context of its own
+  in that domain (initialised without signal handlers), destroyed at teardown.
+- ``installed(package, name)``: the path of an installed executable (``make build``).
+- ``rig``, ``finger_images``: the default simulated rig and its finger under each LED.
+- ``emulator``: a 7-LED board emulator on a pseudo-terminal; ``emulator_threads()`` its live
+  threads, and ``no_emulator_threads_left`` (for ``pytest.mark.usefixtures``) fails a test
+  that leaves one running.
 """
 
 from __future__ import annotations
 
 import fcntl
+import os
 import random
 import tempfile
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import numpy as np
 import pytest
 
+if TYPE_CHECKING:
+    from rclpy.node import Node
+
+    from fingerps_driver.board.board_emulator import BoardEmulator
+    from fingerps_driver.simulation import SimulatedRig
+
+INSTALL = Path(__file__).resolve().parents[1] / "install"
 DOMAIN_RANGE = range(40, 102)  # Fast DDS ports of ids above 101 can collide with ephemeral ports
 
 
@@ -48,3 +66,74 @@ def ros_domain(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[int]
     finally:
         fcntl.flock(handle, fcntl.LOCK_UN)
         handle.close()
+
+
+
+@pytest.fixture
+def ros_node(ros_domain: int) -> Iterator[Node]:
+    """A node of the test process (``/fingerps_test``) in the test's ROS domain."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain,
+               signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("fingerps_test", context=context)
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture(scope="session")
+def installed() -> Callable[[str, str], Path]:
+    """``installed(package, name)``: ``install/<package>/lib/<package>/<name>``; fails the
+    test if it is not built."""
+    def path(package: str, name: str) -> Path:
+        exe = INSTALL / package / "lib" / package / name
+        if not os.access(exe, os.X_OK):
+            pytest.fail(f"{exe} is not built: run 'make build' (then 'source tools/ros_env.sh')")
+        return exe
+    return path
+
+
+@pytest.fixture(scope="module")
+def rig() -> SimulatedRig:
+    """The default simulated rig (``SimulatedRig()``)."""
+    from fingerps_driver.simulation import SimulatedRig
+    return SimulatedRig()
+
+
+@pytest.fixture(scope="module")
+def finger_images(rig: SimulatedRig) -> np.ndarray:
+    """(K, H, W) uint8: the rig's finger under LED k alone, noise seeded with 30 + k."""
+    from fingerps_driver.simulation import Scene
+    return np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(30 + k))
+                     for k in range(rig.led_count)])
+
+
+def _emulator_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("board-emulator")]
+
+
+@pytest.fixture
+def emulator_threads() -> Callable[[], list[threading.Thread]]:
+    """``emulator_threads()``: the board emulators' live threads (named ``board-emulator*``)."""
+    return _emulator_threads
+
+
+@pytest.fixture
+def no_emulator_threads_left() -> Iterator[None]:
+    """Fails the test if a board emulator's thread still runs after it."""
+    yield
+    assert _emulator_threads() == []
+
+
+@pytest.fixture
+def emulator(tmp_path: Path) -> Iterator[BoardEmulator]:
+    """A 7-LED ``BoardEmulator`` on a pseudo-terminal linked at ``tmp_path / "board"``."""
+    from fingerps_driver.board.board_emulator import BoardEmulator
+    with BoardEmulator(7, link_path=str(tmp_path / "board")) as emu:
+        yield emu

@@ -34,16 +34,21 @@ CHUNKS = 6
 PER_CHUNK = 3
 
 
+def _begin_session(bag: SessionBagWriter, camera_name: str) -> None:
+    """The software record, the calibration and burst topics, and one calibration at T0."""
+    bag.add_metadata("fingerps.software", {"package": "fingerps_recon"})
+    bag.add_topic(LIGHTS, "fingerps_msgs/msg/LightCalibration", offered_qos_yaml="[]")
+    bag.add_topic(BURST, "fingerps_msgs/msg/Burst", offered_qos_yaml="[]")
+    bag.write(LIGHTS, serialize_message(LightCalibration(camera_name=camera_name)),
+              log_time_ns=T0, publish_time_ns=T0)
+
+
 def _write_bag(path: Path) -> tuple[Path, list[int]]:
     """A bag of CHUNKS chunks of PER_CHUNK bursts each (plus the calibration in the first);
     returns the MCAP path and the file size after each flushed chunk."""
     sizes = []
     with SessionBagWriter(path, chunk_size=1 << 20) as bag:
-        bag.add_metadata("fingerps.software", {"package": "fingerps_recon"})
-        bag.add_topic(LIGHTS, "fingerps_msgs/msg/LightCalibration", offered_qos_yaml="[]")
-        bag.add_topic(BURST, "fingerps_msgs/msg/Burst", offered_qos_yaml="[]")
-        bag.write(LIGHTS, serialize_message(LightCalibration(camera_name="cut")),
-                  log_time_ns=T0, publish_time_ns=T0)
+        _begin_session(bag, "cut")
         for chunk in range(CHUNKS):
             for i in range(PER_CHUNK):
                 n = chunk * PER_CHUNK + i
@@ -177,11 +182,7 @@ def _layered_bag(path: Path, *, seed: int = 0) -> Layout:
     rng = np.random.default_rng(seed)
     n = 0
     with SessionBagWriter(path, chunk_size=1 << 20) as bag:
-        bag.add_metadata("fingerps.software", {"package": "fingerps_recon"})
-        bag.add_topic(LIGHTS, "fingerps_msgs/msg/LightCalibration", offered_qos_yaml="[]")
-        bag.add_topic(BURST, "fingerps_msgs/msg/Burst", offered_qos_yaml="[]")
-        bag.write(LIGHTS, serialize_message(LightCalibration(camera_name="layered")),
-                  log_time_ns=T0, publish_time_ns=T0)
+        _begin_session(bag, "layered")
         bag.flush()
         for chunk in range(1, 10):
             if chunk == 4:

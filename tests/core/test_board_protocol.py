@@ -127,24 +127,16 @@ def test_seq_wraps_and_is_bounded():
         decode_request(_line(b"#", "0007,PING"))  # more than 3 digits
 
 
+BAD_REQUESTS = {  # request bodies (seq 3) by the error code they must carry
+    ErrorCode.UNKNOWN_COMMAND: ["3,BLINK", "3,ping"],
+    ErrorCode.BAD_ARGUMENT: ["3,LEDS", "3,LEDS,1,2", "3,LEDS,XY", "3,LEDS,123456789", "3,PING,1",
+                             "3,LEVEL,1", "3,LEVEL,1,256", "3,LEVEL,1,-5", "3,LEVEL,256,5"],
+    ErrorCode.BAD_FRAME: ["3,", "3,LEDS,,"],
+}
+
+
 @pytest.mark.parametrize(
-    ("body", "code"),
-    [
-        ("3,BLINK", ErrorCode.UNKNOWN_COMMAND),
-        ("3,ping", ErrorCode.UNKNOWN_COMMAND),
-        ("3,LEDS", ErrorCode.BAD_ARGUMENT),
-        ("3,LEDS,1,2", ErrorCode.BAD_ARGUMENT),
-        ("3,LEDS,XY", ErrorCode.BAD_ARGUMENT),
-        ("3,LEDS,123456789", ErrorCode.BAD_ARGUMENT),
-        ("3,PING,1", ErrorCode.BAD_ARGUMENT),
-        ("3,LEVEL,1", ErrorCode.BAD_ARGUMENT),
-        ("3,LEVEL,1,256", ErrorCode.BAD_ARGUMENT),
-        ("3,LEVEL,1,-5", ErrorCode.BAD_ARGUMENT),
-        ("3,LEVEL,256,5", ErrorCode.BAD_ARGUMENT),
-        ("3,", ErrorCode.BAD_FRAME),
-        ("3,LEDS,,", ErrorCode.BAD_FRAME),
-    ],
-)
+    ("body", "code"), [(body, code) for code, bodies in BAD_REQUESTS.items() for body in bodies])
 def test_bad_requests_carry_code_and_seq(body, code):
     with pytest.raises(ProtocolError) as info:
         decode_request(_line(b"#", body))

@@ -5,7 +5,6 @@ import signal
 import statistics
 import subprocess
 import sys
-import threading
 import time
 
 import pytest
@@ -24,22 +23,7 @@ from fingerps_driver.board.led_board import (
 )
 
 TIMEOUT_S = 0.05
-
-
-def _emulator_threads() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name == "board-emulator"]
-
-
-@pytest.fixture(autouse=True)
-def _no_threads_left_behind():
-    yield
-    assert _emulator_threads() == []
-
-
-@pytest.fixture
-def emulator(tmp_path):
-    with BoardEmulator(7, link_path=str(tmp_path / "board")) as emu:
-        yield emu
+pytestmark = pytest.mark.usefixtures("no_emulator_threads_left")
 
 
 @pytest.fixture
@@ -48,11 +32,11 @@ def board(emulator):
         yield client
 
 
-def test_emulator_serves_a_pty_behind_the_link(emulator, tmp_path):
+def test_emulator_serves_a_pty_behind_the_link(emulator, emulator_threads, tmp_path):
     assert emulator.port == str(tmp_path / "board")
     assert emulator.device.startswith("/dev/pts/")
     assert os.readlink(tmp_path / "board") == emulator.device
-    assert len(_emulator_threads()) == 1
+    assert len(emulator_threads()) == 1
 
 
 def test_info_ping_and_levels(board, emulator):
@@ -174,7 +158,7 @@ def test_commands_need_an_open_port(emulator):
     client.close()
 
 
-def test_stop_is_idempotent_and_removes_the_link(tmp_path):
+def test_stop_is_idempotent_and_removes_the_link(emulator_threads, tmp_path):
     emu = BoardEmulator(link_path=str(tmp_path / "link"))
     emu.stop()  # before start: harmless
     emu.start()
@@ -184,7 +168,7 @@ def test_stop_is_idempotent_and_removes_the_link(tmp_path):
     emu.stop()
     emu.stop()
     assert not (tmp_path / "link").exists()
-    assert _emulator_threads() == []
+    assert emulator_threads() == []
 
 
 def test_link_path_never_clobbers_a_regular_file(tmp_path):

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import stat
 import subprocess
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -29,7 +28,6 @@ W, H = 640, 480
 K = np.array([[820.0, 0.0, 322.5], [0.0, 818.0, 236.0], [0.0, 0.0, 1.0]])
 DISTORTION = np.array([-0.12, 0.05, 0.0005, -0.0008, 0.0])
 PATTERN, SQUARE = (9, 6), 0.02
-REPO = Path(__file__).resolve().parents[2]
 
 
 def _texture(px: int = 40) -> tuple[np.ndarray, np.ndarray]:
@@ -178,9 +176,7 @@ def test_the_command_writes_where_the_drivers_camera_info_url_looks(
     assert "letters, digits" in capsys.readouterr().err
 
 
-def test_the_command_is_installed():
-    exe = REPO / "install" / "fingerps_calib" / "lib" / "fingerps_calib" / "calibrate_camera"
-    if not exe.exists():
-        pytest.fail(f"{exe} is not built: run 'make build'")
+def test_the_command_is_installed(installed):
+    exe = installed("fingerps_calib", "calibrate_camera")
     done = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and "--pattern" in done.stdout

@@ -20,8 +20,6 @@ from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, save_ca
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_recon.photometric.frames import optical_to_ps
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture(scope="module")
 def rig() -> SimulatedRig:
@@ -156,9 +154,7 @@ def test_bad_input_exits_2_with_the_fix(rig, sphere_images, tmp_path, capsys):
         main([str(good), "--radius", "-1"])
 
 
-def test_the_command_is_installed():
-    exe = REPO / "install" / "fingerps_calib" / "lib" / "fingerps_calib" / "calibrate_lights"
-    if not exe.exists():
-        pytest.fail(f"{exe} is not built: run 'make build'")
+def test_the_command_is_installed(installed):
+    exe = installed("fingerps_calib", "calibrate_lights")
     done = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and "filenames.txt" in done.stdout

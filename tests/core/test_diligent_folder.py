@@ -163,10 +163,17 @@ def test_ground_truth_normals_are_read(tmp_path: Path, kind: str) -> None:
 # ----------------------------------------------------------------------------- refusals
 
 
+# light_directions.txt cut to its first 3 rows, then these
+LIGHT_ROWS = {"light count": [], "light malformed": ["0 x 1"], "light width": ["0 1"],
+              "light zero": ["0 0 0"], "light non-unit": ["0 0 0.5"]}
+
+
 def _break(folder: Path, case: str) -> None:
     """Spoil a valid 4-image grey folder in one way."""
     lines = (folder / "light_directions.txt").read_text().splitlines()
-    if case == "filenames":
+    if case in LIGHT_ROWS:
+        (folder / "light_directions.txt").write_text("\n".join([*lines[:3], *LIGHT_ROWS[case]]))
+    elif case == "filenames":
         (folder / "filenames.txt").unlink()
     elif case == "image":
         (folder / "img/002.png").unlink()
@@ -180,16 +187,6 @@ def _break(folder: Path, case: str) -> None:
         cv2.imwrite(str(folder / "img/002.png"), np.full((H, W, 3), 99, np.uint8))
     elif case == "lights missing":
         (folder / "light_directions.txt").unlink()
-    elif case == "light count":
-        (folder / "light_directions.txt").write_text("\n".join(lines[:3]))
-    elif case == "light malformed":
-        (folder / "light_directions.txt").write_text("\n".join([*lines[:3], "0 x 1"]))
-    elif case == "light width":
-        (folder / "light_directions.txt").write_text("\n".join([*lines[:3], "0 1"]))
-    elif case == "light zero":
-        (folder / "light_directions.txt").write_text("\n".join([*lines[:3], "0 0 0"]))
-    elif case == "light non-unit":
-        (folder / "light_directions.txt").write_text("\n".join([*lines[:3], "0 0 0.5"]))
     elif case == "intensity count":
         np.savetxt(folder / "light_intensities.txt", np.ones(5))
     elif case == "intensity sign":

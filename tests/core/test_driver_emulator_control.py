@@ -9,14 +9,12 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
 import pytest
 
 from fingerps_driver.board.board_emulator import (
-    BoardEmulator,
     BoardEmulatorControl,
     BoardEmulatorError,
     EmulatorControlServer,
@@ -27,22 +25,7 @@ from fingerps_driver.cameras.camera import CameraError, SimulatedCamera
 from fingerps_driver.capture.burst import capture_burst
 
 LEDS = tuple(range(7))
-
-
-def _threads(prefix: str = "board-emulator") -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name.startswith(prefix)]
-
-
-@pytest.fixture(autouse=True)
-def _no_threads_left_behind():
-    yield
-    assert _threads() == []
-
-
-@pytest.fixture
-def emulator(tmp_path):
-    with BoardEmulator(7, link_path=str(tmp_path / "board")) as emu:
-        yield emu
+pytestmark = pytest.mark.usefixtures("no_emulator_threads_left")
 
 
 @pytest.fixture

@@ -32,6 +32,22 @@ def _zero_mean(h: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask, h - h[mask].mean(), np.nan)
 
 
+def _sphere_cap(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals, heights and mask (0.8 of the radius) of a sphere cap of radius 60 px centred
+    at pixel (u, v) = (70, 60)."""
+    r_m = 60 * PIXEL
+    c = np.array([70 * PIXEL, -60 * PIXEL])
+
+    def sphere(x, y):
+        d2 = (x - c[0]) ** 2 + (y - c[1]) ** 2
+        z = np.sqrt(np.clip(r_m**2 - d2, 1e-30, None))
+        return z, -(x - c[0]) / z, -(y - c[1]) / z
+
+    normals, h = _normals_of(sphere, shape)
+    v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return normals, h, np.hypot(u - 70, v - 60) < 0.8 * 60
+
+
 def test_tilted_plane_is_exact_and_axes_are_right() -> None:
     a, b = 0.3, -0.2  # dh/dx, dh/dy with y up
     normals, h = _normals_of(lambda x, y: (a * x + b * y, a + 0 * x, b + 0 * x), (50, 70))
@@ -47,18 +63,7 @@ def test_tilted_plane_is_exact_and_axes_are_right() -> None:
 
 
 def test_sphere_cap_with_mask() -> None:
-    shape = (121, 141)
-    r_m = 60 * PIXEL
-    c = np.array([70 * PIXEL, -60 * PIXEL])
-
-    def sphere(x, y):
-        d2 = (x - c[0]) ** 2 + (y - c[1]) ** 2
-        z = np.sqrt(np.clip(r_m**2 - d2, 1e-30, None))
-        return z, -(x - c[0]) / z, -(y - c[1]) / z
-
-    normals, h = _normals_of(sphere, shape)
-    v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
-    mask = np.hypot(u - 70, v - 60) < 0.8 * 60
+    normals, h, mask = _sphere_cap((121, 141))
     got = integrate_normals(normals, mask=mask, pixel_size_m=PIXEL)
     truth = _zero_mean(h, mask)
     span = np.ptp(truth[mask])
@@ -180,20 +185,6 @@ def test_depth_to_points_bad_inputs_raise() -> None:
 
 
 # ----------------------------------------------------------------- FAST vs EXACT
-
-
-def _sphere_cap(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    r_m = 60 * PIXEL
-    c = np.array([70 * PIXEL, -60 * PIXEL])
-
-    def sphere(x, y):
-        d2 = (x - c[0]) ** 2 + (y - c[1]) ** 2
-        z = np.sqrt(np.clip(r_m**2 - d2, 1e-30, None))
-        return z, -(x - c[0]) / z, -(y - c[1]) / z
-
-    normals, h = _normals_of(sphere, shape)
-    v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
-    return normals, h, np.hypot(u - 70, v - 60) < 0.8 * 60
 
 
 def test_fast_is_the_default_and_agrees_with_exact() -> None:

@@ -124,13 +124,15 @@ def test_fewer_than_three_usable_lights_is_invalid() -> None:
     assert res.valid[0, 1] and res.used_lights[0, 1] == 7
 
 
-def test_coplanar_lights_are_invalid_not_guessed() -> None:
+@pytest.mark.parametrize("per_pixel", [False, True], ids=["distant", "per_pixel"])
+def test_coplanar_lights_are_invalid_not_guessed(per_pixel: bool) -> None:
     lights = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [-0.6, 0.0, 0.8], [0.0, 0.6, 0.8]])
     n = np.array([[[0.1, 0.2, 0.97]]]) / np.linalg.norm([0.1, 0.2, 0.97])
     images = _render(n, 1.0, lights)
-    assert solve_lambertian(images, lights).valid[0, 0]
+    given = lights[:, None, None, :] if per_pixel else lights  # (K, 1, 1, 3) or (K, 3)
+    assert solve_lambertian(images, given).valid[0, 0]
     images[3] = 0.0  # the three left all lie in the x-z plane
-    res = solve_lambertian(images, lights)
+    res = solve_lambertian(images, given)
     assert res.used_lights[0, 0] == 3 and not res.valid[0, 0]
 
 
@@ -281,17 +283,6 @@ def test_per_pixel_unusable_lights_are_left_out() -> None:
     np.testing.assert_allclose(res.normals[0, [0, 1, 3]], [[0, 0, 1]] * 3, atol=tol)
     np.testing.assert_allclose(res.albedo[0, [0, 1, 3]], 0.5, rtol=1e-5)
     assert np.all(res.normals[0, 2] == 0) and res.albedo[0, 2] == 0
-
-
-def test_per_pixel_coplanar_lights_are_invalid() -> None:
-    lights = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [-0.6, 0.0, 0.8], [0.0, 0.6, 0.8]])
-    n = np.array([[[0.1, 0.2, 0.97]]]) / np.linalg.norm([0.1, 0.2, 0.97])
-    images = _render(n, 1.0, lights)
-    per_pixel = lights[:, None, None, :]
-    assert solve_lambertian(images, per_pixel).valid[0, 0]
-    images[3] = 0.0  # the three left all lie in the x-z plane
-    res = solve_lambertian(images, per_pixel)
-    assert res.used_lights[0, 0] == 3 and not res.valid[0, 0]
 
 
 def test_float32_thresholds_are_exact() -> None:

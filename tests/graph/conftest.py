@@ -1,12 +1,19 @@
 """Fixtures for graph tests: real nodes in subprocesses, talking over DDS on this host only.
 
-- ``ros_domain`` (tests/conftest.py): a ROS domain of the test's own, localhost only.
-- ``ros_node``: an rclpy node of the test process in a context of its own (initialised after
-  ``ros_domain``, without signal handlers), destroyed at teardown.
+- ``ros_domain``, ``ros_node`` (tests/conftest.py): a ROS domain of the test's own, localhost
+  only, and an rclpy node of the test process in it.
 - ``start_node(package, executable, *args)``: starts ``install/<pkg>/lib/<pkg>/<exe>`` (built
   by ``make build``) and returns a `NodeProcess`; every process still running at teardown is
   stopped (SIGINT, then SIGKILL of its process group).
 - ``wait_for(condition, what, timeout=...)``: polls a condition instead of sleeping blindly.
+- ``spin_until(condition, what, timeout=...)``: spins ``ros_node`` until the condition holds;
+  ``call_service(client, request)``: a service's response, spun until it arrives.
+- ``driver_topics``: the test node's subscriptions of the driver's burst and frames topics
+  and its capture_burst client.
+- ``start_recorder(session, lights=..., flush_period=...)``: a recorder_node recording what
+  the test publishes (a light calibration first).
+- ``rig_messages``: the LightCalibration and Burst messages of a simulated rig, built in the
+  test as calib_node and the driver would publish them.
 """
 
 from __future__ import annotations
@@ -17,18 +24,31 @@ import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import NamedTuple
 
+import numpy as np
 import pytest
-import rclpy
-from rclpy.context import Context
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Vector3
+from rclpy.client import Client
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
+from rclpy.publisher import Publisher
+from sensor_msgs.msg import CameraInfo
+from std_msgs.msg import Header
+
+from fingerps_driver.simulation import SimulatedRig
+from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
+from fingerps_msgs.srv import CaptureBurst
+from fingerps_recon.photometric.frames import ps_to_optical
+from fingerps_ros import qos, topics
+from fingerps_ros.image_conversion import array_to_image
 
 REPO = Path(__file__).resolve().parents[2]
-INSTALL = REPO / "install"
 START_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 20.0
+NS = "/" + topics.NAMESPACE
+FRAME_ID = "fingerps_camera_optical_frame"
 
 
 def wait_until(condition: Callable[[], object], what: str, *, timeout: float = 20.0,
@@ -48,20 +68,6 @@ def wait_until(condition: Callable[[], object], what: str, *, timeout: float = 2
 def wait_for() -> Callable[..., object]:
     """``wait_for(condition, what, timeout=20.0)``: poll until truthy, else fail the test."""
     return wait_until
-
-
-@pytest.fixture
-def ros_node(ros_domain: int) -> Iterator[Node]:
-    """A node of the test process (``/fingerps_test``) in the test's ROS domain."""
-    context = Context()
-    rclpy.init(context=context, domain_id=ros_domain,
-               signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("fingerps_test", context=context)
-    try:
-        yield node
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def node_in_graph(graph_node: Node, name: str, namespace: str = "/") -> bool:
@@ -106,6 +112,19 @@ class NodeProcess:
         """Send a signal to the node's process (as Ctrl-C or ``kill`` would)."""
         self.process.send_signal(signum)
 
+    def signal_until_exit(self, timeout: float) -> int:
+        """SIGINT, then SIGTERM and SIGINT in turn every 10 ms until the process has exited or
+        ``timeout`` s have passed (a second Ctrl-C, the process group's SIGINT, a supervisor's
+        SIGTERM); returns how many signals were sent."""
+        self.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + timeout
+        sent = 1
+        while self.running() and time.monotonic() < deadline:
+            self.send_signal(signal.SIGTERM if sent % 2 else signal.SIGINT)
+            sent += 1
+            time.sleep(0.01)
+        return sent
+
     def wait(self, timeout: float = STOP_TIMEOUT_S) -> int:
         """Wait for the process to exit and return its exit code; fail on timeout."""
         try:
@@ -131,16 +150,9 @@ class NodeProcess:
             self._log.close()
 
 
-def executable(package: str, name: str) -> Path:
-    """``install/<package>/lib/<package>/<name>``; fails the test if it is not built."""
-    path = INSTALL / package / "lib" / package / name
-    if not os.access(path, os.X_OK):
-        pytest.fail(f"{path} is not built: run 'make build' (then 'source tools/ros_env.sh')")
-    return path
-
-
 @pytest.fixture
-def start_node(ros_domain: int, tmp_path: Path) -> Iterator[Callable[..., NodeProcess]]:
+def start_node(ros_domain: int, tmp_path: Path,
+               installed: Callable[[str, str], Path]) -> Iterator[Callable[..., NodeProcess]]:
     """``start_node(package, executable, *args)`` -> NodeProcess, stopped at teardown."""
     started: list[NodeProcess] = []
 
@@ -149,7 +161,7 @@ def start_node(ros_domain: int, tmp_path: Path) -> Iterator[Callable[..., NodePr
         env.update(PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0",
                    RCUTILS_COLORIZED_OUTPUT="0")
         log_path = tmp_path / f"{name}_{len(started)}.log"
-        proc = NodeProcess([str(executable(package, name)), *args], log_path, env)
+        proc = NodeProcess([str(installed(package, name)), *args], log_path, env)
         started.append(proc)
         return proc
 
@@ -177,3 +189,111 @@ def spin_until(ros_node: Node) -> Iterator[Callable[..., None]]:
     finally:
         executor.remove_node(ros_node)
         executor.shutdown()
+
+
+@pytest.fixture
+def call_service(spin_until: Callable[..., None]) -> Callable[..., object]:
+    """``call_service(client, request, what=None, timeout=30.0)``: the service's response,
+    ``ros_node`` spun until it arrives; fails the test if the service is not there."""
+    def call(client: Client, request: object, what: str | None = None, *,
+             timeout: float = 30.0) -> object:
+        assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
+        future = client.call_async(request)
+        spin_until(future.done, what or f"the response of {client.srv_name}", timeout=timeout)
+        return future.result()
+    return call
+
+
+class DriverTopics(NamedTuple):
+    """What the test node hears of a driver: its bursts and tagged frames as they arrive."""
+
+    bursts: list[Burst]
+    frames: list[TaggedFrame]
+    capture: Client  # of the capture_burst service
+
+
+@pytest.fixture
+def driver_topics(ros_node: Node) -> DriverTopics:
+    """The test node subscribed to the driver's burst and frames topics (their QoS), with a
+    capture_burst client."""
+    topics_heard = DriverTopics([], [], ros_node.create_client(
+        CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}"))
+    ros_node.create_subscription(Burst, f"{NS}/{topics.BURST}", topics_heard.bursts.append,
+                                 qos.BURST_QOS)
+    ros_node.create_subscription(TaggedFrame, f"{NS}/{topics.FRAMES}",
+                                 topics_heard.frames.append, qos.SENSOR_QOS)
+    return topics_heard
+
+
+class Recording(NamedTuple):
+    """A recorder_node process, the test's burst publisher and the recorder's bags_dir."""
+
+    recorder: NodeProcess
+    burst_pub: Publisher
+    bags: Path
+
+
+@pytest.fixture
+def start_recorder(ros_node: Node, start_node: Callable[..., NodeProcess],
+                   tmp_path: Path) -> Callable[..., Recording]:
+    """``start_recorder(session, lights=..., flush_period=...)``: publishes ``lights`` (the
+    calibration, before the recorder exists: transient-local brings it), starts recorder_node
+    (bags_dir ``tmp_path / "bags"``, that session name, ``record_outputs:=false``) and waits
+    until it subscribes to the test's burst publisher."""
+    def start(session: str, *, lights: LightCalibration, flush_period: float) -> Recording:
+        lights_pub = ros_node.create_publisher(
+            LightCalibration, f"{NS}/{topics.LIGHT_CALIBRATION}", qos.CALIBRATION_QOS)
+        lights_pub.publish(lights)
+        burst_pub = ros_node.create_publisher(Burst, f"{NS}/{topics.BURST}", qos.BURST_QOS)
+        bags = tmp_path / "bags"
+        recorder = start_node(
+            "fingerps_recon", "recorder_node", "--ros-args",
+            "-p", f"bags_dir:={bags}", "-p", f"session_name:={session}",
+            "-p", "record_outputs:=false", "-p", f"flush_period:={flush_period}")
+        recorder.wait_in_graph(ros_node, "recorder", NS)
+        wait_until(lambda: burst_pub.get_subscription_count() >= 1,
+                   "the recorder's burst subscription")
+        return Recording(recorder, burst_pub, bags)
+    return start
+
+
+class RigMessages:
+    """A simulated rig's messages as calib_node and the driver publish them (frame
+    ``FRAME_ID``), built in the test."""
+
+    def __init__(self, rig: SimulatedRig) -> None:
+        self.rig = rig
+
+    def light_calibration(self, camera_name: str) -> LightCalibration:
+        """The rig's true distant lights from the apex (optical frame) and relative
+        intensities at the apex (scaled to a maximum of 1)."""
+        directions = ps_to_optical(self.rig.light_directions_ps())
+        intensities = self.rig.light_intensities()
+        return LightCalibration(
+            header=Header(frame_id=FRAME_ID), camera_name=camera_name,
+            directions=[Vector3(x=float(x), y=float(y), z=float(z)) for x, y, z in directions],
+            relative_intensities=[float(i) for i in intensities / intensities.max()],
+            sphere_radius=self.rig.config.sphere_radius_m)
+
+    def burst(self, images: np.ndarray, burst_id: int, *, leds: list[int] | None = None,
+              encoding: str = "mono8", nanosec: int | None = None) -> Burst:
+        """A burst of ``images`` (one per LED; only ``leds`` if given) stamped
+        ``1000 + burst_id`` s and ``nanosec`` ns (``burst_id`` if None)."""
+        header = Header(stamp=Time(sec=1000 + burst_id,
+                                   nanosec=burst_id if nanosec is None else nanosec),
+                        frame_id=FRAME_ID)
+        count = len(images)
+        frames = [TaggedFrame(header=header, burst_id=burst_id, led_index=k, led_count=count,
+                              exposure_time=0.01, led_intensity=1.0,
+                              image=array_to_image(images[k], encoding=encoding, header=header))
+                  for k in (range(count) if leds is None else leds)]
+        info = CameraInfo(header=header, width=self.rig.config.width,
+                          height=self.rig.config.height,
+                          k=[float(x) for x in self.rig.camera_matrix.reshape(-1)])
+        return Burst(header=header, burst_id=burst_id, frames=frames, camera_info=info)
+
+
+@pytest.fixture(scope="module")
+def rig_messages(rig: SimulatedRig) -> RigMessages:
+    """The LightCalibration and Burst messages of the module's ``rig``."""
+    return RigMessages(rig)

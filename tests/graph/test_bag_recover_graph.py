@@ -8,16 +8,13 @@ import subprocess
 from pathlib import Path
 
 from mcap.records import Channel, Message
-from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
 
 from fingerps_msgs.msg import Burst, LightCalibration
 from fingerps_recon.sessions.mcap_records import McapDamageError, scan_records
-from fingerps_ros import qos, topics
+from fingerps_ros import topics
 
-REPO = Path(__file__).resolve().parents[2]
-BAG_RECOVER = REPO / "install" / "fingerps_recon" / "lib" / "fingerps_recon" / "bag_recover"
 NAMESPACE = "/" + topics.NAMESPACE
 BURST_TOPIC = f"{NAMESPACE}/{topics.BURST}"
 LIGHTS_TOPIC = f"{NAMESPACE}/{topics.LIGHT_CALIBRATION}"
@@ -43,18 +40,10 @@ def _burst_ids_on_disk(path: Path) -> list[int]:
     return ids
 
 
-def test_a_sigkilled_recorder_bag_is_recovered(ros_node: Node, start_node, wait_for,
-                                               tmp_path: Path) -> None:
-    lights_pub = ros_node.create_publisher(LightCalibration, LIGHTS_TOPIC, qos.CALIBRATION_QOS)
-    lights_pub.publish(LightCalibration(camera_name="killed", sphere_radius=0.004))
-    burst_pub = ros_node.create_publisher(Burst, BURST_TOPIC, qos.BURST_QOS)
-    bags = tmp_path / "bags"
-    recorder = start_node(
-        "fingerps_recon", "recorder_node", "--ros-args",
-        "-p", f"bags_dir:={bags}", "-p", "session_name:=killed",
-        "-p", "record_outputs:=false", "-p", "flush_period:=0.05")
-    recorder.wait_in_graph(ros_node, "recorder", NAMESPACE)
-    wait_for(lambda: burst_pub.get_subscription_count() >= 1, "the recorder's burst subscription")
+def test_a_sigkilled_recorder_bag_is_recovered(start_recorder, wait_for, installed) -> None:
+    recorder, burst_pub, bags = start_recorder(
+        "killed", lights=LightCalibration(camera_name="killed", sphere_radius=0.004),
+        flush_period=0.05)
 
     mcap_path = bags / "killed" / "killed_0.mcap"
     for burst_id in range(BURSTS):  # one at a time: the burst QoS keeps only the last 4
@@ -68,7 +57,7 @@ def test_a_sigkilled_recorder_bag_is_recovered(ros_node: Node, start_node, wait_
     on_disk = _burst_ids_on_disk(mcap_path)
 
     result = subprocess.run(
-        [str(BAG_RECOVER), str(bags / "killed")],
+        [str(installed("fingerps_recon", "bag_recover")), str(bags / "killed")],
         capture_output=True, text=True, timeout=30)
     assert result.returncode == 0, result.stderr
     assert "recovered" in result.stdout and "Traceback" not in result.stderr

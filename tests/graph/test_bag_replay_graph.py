@@ -14,15 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Vector3
 from rclpy.node import Node
 from rclpy.serialization import serialize_message
-from sensor_msgs.msg import CameraInfo, Image
-from std_msgs.msg import Header
+from sensor_msgs.msg import Image
 
-from fingerps_driver.simulation import Scene, SimulatedRig
-from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
+from fingerps_driver.simulation import Scene
+from fingerps_msgs.msg import Burst, LightCalibration
 from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
 from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions, reconstruct
 from fingerps_recon.sessions.bag_reader import SessionBagReader
@@ -33,43 +30,23 @@ from fingerps_recon.sessions.session_bag import (
     qos_profiles_yaml,
 )
 from fingerps_ros import qos, topics
-from fingerps_ros.image_conversion import array_to_image, image_to_array
+from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
 BURST_TOPIC = f"{NS}/{topics.BURST}"
 LIGHTS_TOPIC = f"{NS}/{topics.LIGHT_CALIBRATION}"
-FRAME_ID = "fingerps_camera_optical_frame"
 T0 = 1_700_000_000_000_000_000
-REPO = Path(__file__).resolve().parents[2]
-BAG_REPLAY = REPO / "install" / "fingerps_recon" / "lib" / "fingerps_recon" / "bag_replay"
 
 
-def _calibration(rig: SimulatedRig) -> LightCalibration:
-    directions = ps_to_optical(rig.light_directions_ps())
-    intensities = rig.light_intensities()
-    return LightCalibration(
-        header=Header(frame_id=FRAME_ID), camera_name="replay_test",
-        directions=[Vector3(x=float(x), y=float(y), z=float(z)) for x, y, z in directions],
-        relative_intensities=[float(i) for i in intensities / intensities.max()],
-        sphere_radius=rig.config.sphere_radius_m)
-
-
-def _burst(rig: SimulatedRig, burst_id: int) -> Burst:
+def _burst(rig_messages, burst_id: int) -> Burst:
+    rig = rig_messages.rig
     images = np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(50 * burst_id + k))
                        for k in range(rig.led_count)])
-    header = Header(stamp=Time(sec=1000 + burst_id), frame_id=FRAME_ID)
-    frames = [TaggedFrame(header=header, burst_id=burst_id, led_index=k,
-                          led_count=rig.led_count, exposure_time=0.01, led_intensity=1.0,
-                          image=array_to_image(images[k], encoding="mono8", header=header))
-              for k in range(rig.led_count)]
-    info = CameraInfo(header=header, width=rig.config.width, height=rig.config.height,
-                      k=[float(x) for x in rig.camera_matrix.reshape(-1)])
-    return Burst(header=header, burst_id=burst_id, frames=frames, camera_info=info)
+    return rig_messages.burst(images, burst_id, nanosec=0)
 
 
 @pytest.fixture(scope="module")
-def session_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    rig = SimulatedRig()
+def session_bag(tmp_path_factory: pytest.TempPathFactory, rig_messages) -> Path:
     path = tmp_path_factory.mktemp("replay") / "session"
     with SessionBagWriter(path) as bag:
         bag.add_topic(LIGHTS_TOPIC, "fingerps_msgs/msg/LightCalibration",
@@ -78,11 +55,11 @@ def session_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
         bag.add_topic(BURST_TOPIC, "fingerps_msgs/msg/Burst",
                       offered_qos_yaml=qos_profiles_yaml(QosProfileFields.from_profile(
                           qos.BURST_QOS)))
-        bag.write(LIGHTS_TOPIC, serialize_message(_calibration(rig)), log_time_ns=T0,
-                  publish_time_ns=T0)
+        lights = rig_messages.light_calibration("replay_test")
+        bag.write(LIGHTS_TOPIC, serialize_message(lights), log_time_ns=T0, publish_time_ns=T0)
         for i in (1, 2):
             t = T0 + i * 1_000_000_000
-            bag.write(BURST_TOPIC, serialize_message(_burst(rig, i)), log_time_ns=t,
+            bag.write(BURST_TOPIC, serialize_message(_burst(rig_messages, i)), log_time_ns=t,
                       publish_time_ns=t)
     return path
 
@@ -149,7 +126,7 @@ def test_start_offset_and_topic_filter(session_bag: Path, ros_node: Node, start_
     assert "replay done: 1 messages published" in only.output
 
 
-def test_a_bag_of_another_message_version_is_refused(tmp_path: Path) -> None:
+def test_a_bag_of_another_message_version_is_refused(tmp_path: Path, installed) -> None:
     real = load_message_definition("fingerps_msgs/msg/Burst")
     old = MessageDefinition(real.type_name, real.encoding,
                             real.text.replace("uint32 burst_id", "uint16 burst_id", 1))
@@ -158,7 +135,8 @@ def test_a_bag_of_another_message_version_is_refused(tmp_path: Path) -> None:
         bag.add_topic(BURST_TOPIC, "fingerps_msgs/msg/Burst", offered_qos_yaml="[]",
                       definition=old)
         bag.write(BURST_TOPIC, b"\x00\x01\x00\x00", log_time_ns=T0, publish_time_ns=T0)
-    result = subprocess.run([str(BAG_REPLAY), "--ros-args", "-p", f"bag:={tmp_path / 'old'}"],
+    result = subprocess.run([str(installed("fingerps_recon", "bag_replay")), "--ros-args",
+                             "-p", f"bag:={tmp_path / 'old'}"],
                             capture_output=True, text=True, timeout=30)
     assert result.returncode == 1, result.stdout + result.stderr
     output = result.stdout + result.stderr

@@ -1,24 +1,23 @@
-"""driver_node with the folder camera and the per-LED parameters, as a real process; camera
-and parameter errors at start-up end in one clear line and exit code 2."""
+"""driver_node with the folder camera and the per-LED parameters, as a real process; bad
+start-up input (camera, port, parameters) ends in one clear line and exit code 2."""
 
 from __future__ import annotations
 
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from ament_index_python.packages import get_package_prefix
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 
 from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, save_camera_info
-from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_ros import qos, topics
+from fingerps_ros import topics
 from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
@@ -38,15 +37,9 @@ def _folder(path: Path, sizes=None) -> Path:
     return path
 
 
-def _call(ros_node, client, request, spin_until):
-    assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-    future = client.call_async(request)
-    spin_until(future.done, f"the response of {client.srv_name}", timeout=30.0)
-    return future.result()
-
-
 def test_folder_camera_replays_the_led_images_in_the_planned_order(
-        ros_node: Node, start_node, spin_until, tmp_path: Path) -> None:
+        ros_node: Node, start_node, spin_until, call_service, driver_topics,
+        tmp_path: Path) -> None:
     folder = _folder(tmp_path / "capture")
     info_file = tmp_path / "camera.yaml"
     k = np.array([[500.0, 0, 7.5], [0, 500.0, 5.5], [0, 0, 1]])
@@ -59,16 +52,11 @@ def test_folder_camera_replays_the_led_images_in_the_planned_order(
         "-p", "led_order:=[6, 5, 4, 3, 2, 1, 0]",
         "-p", f"exposure_times:={exposures}", "-p", f"led_levels:={levels}")
     driver.wait_in_graph(ros_node, "driver", NS)
-    bursts: list[Burst] = []
-    frames: list[TaggedFrame] = []
-    ros_node.create_subscription(Burst, f"{NS}/{topics.BURST}", bursts.append, qos.BURST_QOS)
-    ros_node.create_subscription(TaggedFrame, f"{NS}/{topics.FRAMES}", frames.append,
-                                 qos.SENSOR_QOS)
-    client = ros_node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
+    bursts, _, client = driver_topics
     spin_until(lambda: ros_node.count_publishers(f"{NS}/{topics.FRAMES}") >= 1,
                "the driver's publishers")
 
-    response = _call(ros_node, client, CaptureBurst.Request(with_dark_frame=True), spin_until)
+    response = call_service(client, CaptureBurst.Request(with_dark_frame=True))
     assert response.success, response.message
     burst = response.burst
     assert [f.led_index for f in burst.frames] == list(range(7))  # published in LED order
@@ -93,23 +81,33 @@ def test_folder_camera_replays_the_led_images_in_the_planned_order(
                                integer_array_value=order)
         request = SetParameters.Request(parameters=[ParameterMsg(name="led_order",
                                                                  value=value)])
-        return _call(ros_node, set_params, request, spin_until).results[0]
+        return call_service(set_params, request).results[0]
 
     refused = set_order([0, 0, 1])
     assert not refused.successful and "more than once" in refused.reason
     assert set_order([3, 1]).successful
-    response = _call(ros_node, client, CaptureBurst.Request(), spin_until)
+    response = call_service(client, CaptureBurst.Request())
     assert response.success, response.message
     assert [f.led_index for f in response.burst.frames] == [1, 3]
 
 
-def _run(*args: str) -> subprocess.CompletedProcess:
-    exe = f"{get_package_prefix('fingerps_driver')}/lib/fingerps_driver/driver_node"
-    return subprocess.run([exe, "--ros-args", *args], capture_output=True, text=True,
-                          timeout=60)
+@pytest.fixture
+def run_driver(ros_domain: int, installed) -> Callable[..., subprocess.CompletedProcess]:
+    """``run_driver(*ros_args)``: driver_node run to its end in the test's ROS domain."""
+    exe = installed("fingerps_driver", "driver_node")
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([exe, "--ros-args", *args], capture_output=True, text=True,
+                              timeout=60)
+    return run
 
 
 @pytest.mark.parametrize(("args", "expected"), [
+    (["-p", "port:=/dev/fingerps_no_such_port"], "/dev/fingerps_no_such_port"),
+    (["-p", "sim.scene:=banana"], "sim.scene"),
+    (["-p", "led_count:=99"], "led_count"),
+    (["-p", "sim.sceen:=sphere"], "sim.sceen"),
+    (["--params-file", "/nonexistent/fingerps.yaml"], "params file"),
     (["-p", "led_order:=[0, 9]"], "led_order"),
     (["-p", "exposure_times:=[0.01, 0.02]"], "2 entries for 7 LEDs"),
     (["-p", "led_levels:=[1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 2.0]"], "levels are in 0..1"),
@@ -127,8 +125,9 @@ def _run(*args: str) -> subprocess.CompletedProcess:
      "not both"),
     (["-p", "camera_name:=kiosk-cam"], "letters, digits and '_'"),
 ])
-def test_bad_camera_and_led_parameters_are_one_clear_line(ros_domain: int, args, expected):
-    run = _run(*args)
+def test_bad_start_up_input_is_one_clear_line(run_driver, args: list[str],
+                                              expected: str) -> None:
+    run = run_driver(*args)
     assert run.returncode == 2, run.stderr
     assert "Traceback" not in run.stderr + run.stdout
     errors = [line for line in run.stderr.splitlines() if "] error:" in line]
@@ -136,10 +135,10 @@ def test_bad_camera_and_led_parameters_are_one_clear_line(ros_domain: int, args,
 
 
 def test_a_folder_with_an_image_of_the_wrong_size_is_named_at_start(
-        ros_domain: int, tmp_path: Path) -> None:
+        run_driver, tmp_path: Path) -> None:
     sizes = [(H, W)] * 4 + [(H, W + 4)] + [(H, W)] * 2
     folder = _folder(tmp_path / "odd", sizes)
-    run = _run("-p", "camera:=folder", "-p", f"camera_folder:={folder}")
+    run = run_driver("-p", "camera:=folder", "-p", f"camera_folder:={folder}")
     assert run.returncode == 2
     errors = [line for line in run.stderr.splitlines() if "] error:" in line]
     assert len(errors) == 1 and "led_4.png (LED 4)" in errors[0], run.stderr

@@ -1,47 +1,33 @@
 """driver_node as a real process: bursts over the pty serial path, tagged with the LED the
-board actually lit; published on the topics; bad start-up input ends in one clear line."""
+board actually lit; published on the topics (bad start-up input: test_driver_cameras.py)."""
 
 from __future__ import annotations
 
 import signal
-import subprocess
 
 import numpy as np
 import pytest
-from ament_index_python.packages import get_package_prefix
 from rclpy.node import Node
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_msgs.msg import Burst, TaggedFrame
+from fingerps_msgs.msg import TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_ros import qos, topics
+from fingerps_ros import topics
 from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
 
 
-def _call(client, request, spin_until):
-    assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-    future = client.call_async(request)
-    spin_until(future.done, f"the response of {client.srv_name}", timeout=30.0)
-    return future.result()
-
-
 def test_burst_frames_are_tagged_with_the_led_that_lit_them(
-        ros_node: Node, start_node, spin_until) -> None:
+        ros_node: Node, start_node, spin_until, call_service, driver_topics) -> None:
     driver = start_node("fingerps_driver", "driver_node")
     driver.wait_in_graph(ros_node, "driver", NS)
-    bursts: list[Burst] = []
-    frames: list[TaggedFrame] = []
-    ros_node.create_subscription(Burst, f"{NS}/{topics.BURST}", bursts.append, qos.BURST_QOS)
-    ros_node.create_subscription(TaggedFrame, f"{NS}/{topics.FRAMES}", frames.append,
-                                 qos.SENSOR_QOS)
-    client = ros_node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
+    bursts, frames, client = driver_topics
     spin_until(lambda: ros_node.count_publishers(f"{NS}/{topics.BURST}") >= 1
                and ros_node.count_publishers(f"{NS}/{topics.FRAMES}") >= 1,
                "the driver's publishers")
 
-    response = _call(client, CaptureBurst.Request(with_dark_frame=True), spin_until)
+    response = call_service(client, CaptureBurst.Request(with_dark_frame=True))
     assert response.success, response.message
     burst = response.burst
     assert [f.led_index for f in burst.frames] == list(range(7))
@@ -71,7 +57,7 @@ def test_burst_frames_are_tagged_with_the_led_that_lit_them(
 
     # A capture for calibration is answered but not published.
     published = len(bursts)
-    response = _call(client, CaptureBurst.Request(response_only=True), spin_until)
+    response = call_service(client, CaptureBurst.Request(response_only=True))
     assert response.success and len(response.burst.frames) == 7
     with pytest.raises(pytest.fail.Exception):
         spin_until(lambda: len(bursts) > published, "no burst", timeout=1.0)
@@ -79,24 +65,6 @@ def test_burst_frames_are_tagged_with_the_led_that_lit_them(
     driver.send_signal(signal.SIGTERM)
     assert driver.wait() == 0
     assert "Traceback" not in driver.output
-
-
-@pytest.mark.parametrize(("args", "expected"), [
-    (["-p", "port:=/dev/fingerps_no_such_port"], "/dev/fingerps_no_such_port"),
-    (["-p", "sim.scene:=banana"], "sim.scene"),
-    (["-p", "led_count:=99"], "led_count"),
-    (["-p", "sim.sceen:=sphere"], "sim.sceen"),
-    (["--params-file", "/nonexistent/fingerps.yaml"], "params file"),
-])
-def test_bad_start_up_input_is_one_clear_line(ros_domain: int, args: list[str],
-                                              expected: str) -> None:
-    exe = f"{get_package_prefix('fingerps_driver')}/lib/fingerps_driver/driver_node"
-    run = subprocess.run([exe, "--ros-args", *args], capture_output=True, text=True,
-                         timeout=60)
-    assert run.returncode == 2
-    assert "Traceback" not in run.stderr + run.stdout
-    errors = [line for line in run.stderr.splitlines() if "] error:" in line]
-    assert len(errors) == 1 and expected in errors[0], run.stderr
 
 
 def test_diagnostics_say_whether_continuous_capture_keeps_the_rate(

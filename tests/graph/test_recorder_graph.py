@@ -49,19 +49,10 @@ def _messages_on_disk(path: Path) -> int:
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_recorder_writes_a_valid_bag_and_stops_cleanly(
-        signum: int, ros_node: Node, start_node, wait_for, tmp_path: Path) -> None:
-    # The calibration is published before the recorder exists: transient-local brings it.
-    lights_pub = ros_node.create_publisher(LightCalibration, LIGHTS_TOPIC, qos.CALIBRATION_QOS)
-    lights_pub.publish(LightCalibration(camera_name="graph_test", sphere_radius=0.005))
-    burst_pub = ros_node.create_publisher(Burst, BURST_TOPIC, qos.BURST_QOS)
-
-    bags = tmp_path / "bags"
-    recorder = start_node(
-        "fingerps_recon", "recorder_node", "--ros-args",
-        "-p", f"bags_dir:={bags}", "-p", "session_name:=graph_session",
-        "-p", "record_outputs:=false", "-p", "flush_period:=0.1")
-    recorder.wait_in_graph(ros_node, "recorder", NAMESPACE)
-    wait_for(lambda: burst_pub.get_subscription_count() >= 1, "the recorder's burst subscription")
+        signum: int, ros_node: Node, start_recorder, wait_for) -> None:
+    recorder, burst_pub, bags = start_recorder(
+        "graph_session", lights=LightCalibration(camera_name="graph_test", sphere_radius=0.005),
+        flush_period=0.1)
 
     subscribed = dict(ros_node.get_subscriber_names_and_types_by_node("recorder", NAMESPACE))
     assert subscribed[BURST_TOPIC] == ["fingerps_msgs/msg/Burst"]
