@@ -1,7 +1,7 @@
 """Bad Burst, LightCalibration and FlatField messages through recon_node's core functions
-(``reconstruct_burst``, ``PreparedCalibrations``, ``check_burst_size``,
-``check_light_calibration``, ``flat_field_maps``), without a ROS graph; and the node's
-worker, in this process, going on after an error nobody expected.
+(``burst_reconstruction.reconstruct_burst``, ``PreparedCalibrations``,
+``burst_intake.check_burst_size``, ``check_light_calibration``, ``flat_field_maps``), without
+a ROS graph; and the node's worker, in this process, going on after an error nobody expected.
 
 Every bad message must end in a ``FingerpsError`` (``FingerpsReconError``, ``MessageError``)
 that says what is wrong - never in
@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import rclpy
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Point, Vector3
 from rclpy.context import Context
 from rclpy.signals import SignalHandlerOptions
@@ -30,18 +31,20 @@ from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_recon import recon_node
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
-from fingerps_recon.recon_node import (
+from fingerps_recon.reconstruction import worker
+from fingerps_recon.reconstruction.burst_intake import (
     BurstLimits,
-    EmptyReconstructionError,
     IncompleteBurstError,
-    LogGate,
-    PreparedCalibrations,
-    _one_line,
     check_burst_size,
     check_light_calibration,
     flat_field_maps,
+)
+from fingerps_recon.reconstruction.burst_reconstruction import (
+    EmptyReconstructionError,
+    PreparedCalibrations,
     reconstruct_burst,
 )
+from fingerps_recon.reconstruction.problem_log import LogGate, one_line
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.image_conversion import array_to_image, images_to_array
 
@@ -343,7 +346,7 @@ def test_an_unexpected_error_is_told_in_one_line_with_its_place() -> None:
     try:
         np.zeros((0, 3)).max(axis=0)
     except ValueError as exc:
-        line = _one_line(exc)
+        line = one_line(exc)
     assert "\n" not in line and line.startswith("ValueError: zero-size array")
     assert "(at " in line and ".py:" in line
 
@@ -360,34 +363,34 @@ def test_the_log_gate_lets_each_problem_through_once_per_period() -> None:
 def test_the_worker_survives_an_unexpected_error(
         rig: SimulatedRig, images: np.ndarray, ros_domain: int,
         monkeypatch: pytest.MonkeyPatch) -> None:
-    real = recon_node.reconstruct_burst
+    real = worker.reconstruct_burst
 
     def flaky(burst: Burst, *args, **kwargs):
         if burst.burst_id == 1:
             raise ValueError("zero-size array to reduction operation maximum")
         return real(burst, *args, **kwargs)
 
-    monkeypatch.setattr(recon_node, "reconstruct_burst", flaky)
+    monkeypatch.setattr(worker, "reconstruct_burst", flaky)  # as the worker calls it
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain,
                signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = recon_node.ReconNode(context=context)
-        node._on_lights(calibration(rig))
+        node._recon.on_lights(calibration(rig))
         for burst_id in (1, 2):
             good = burst(rig, images)
             good.burst_id = burst_id
-            node._on_burst(good)
+            node._recon.on_burst(good)
         deadline = time.monotonic() + 60.0
-        while node._done + node._failed < 2 and time.monotonic() < deadline:
+        while node._recon.done + node._recon.failed < 2 and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert (node._failed, node._unexpected, node._done) == (1, 1, 1)
+        assert (node._recon.failed, node._recon.unexpected, node._recon.done) == (1, 1, 1)
         assert node._worker.is_alive()
-        level, message = node._level()
-        assert level == recon_node.DiagnosticStatus.WARN and "failed" in message
-        assert node._last_error == ""  # the good burst after it
-        assert "unexpected ValueError: zero-size array" in node._last_problem
+        level, message = node._recon.health()
+        assert level == DiagnosticStatus.WARN and "failed" in message
+        assert node._recon.last_error == ""  # the good burst after it
+        assert "unexpected ValueError: zero-size array" in node._recon.last_problem
     finally:
         if node is not None:
             node.destroy_node()

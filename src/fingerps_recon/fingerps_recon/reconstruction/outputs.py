@@ -1,0 +1,63 @@
+"""recon_node's output messages, built from a reconstruction (no node): the normals, the
+normal map, depth, albedo, the point cloud, and the fingerprint.
+
+:func:`output_messages` builds each message only when the caller asks for the next one, so
+that the caller publishes each before the next is converted (the subscribers get the first
+output sooner).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import NamedTuple
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from sensor_msgs.msg import Image, PointCloud2
+from std_msgs.msg import Header
+
+from fingerps_recon.photometric.frames import ps_to_optical
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.photometric.pipeline import Reconstruction
+from fingerps_ros import topics
+from fingerps_ros.image_conversion import array_to_image
+from fingerps_ros.point_cloud_conversion import points_to_cloud
+
+OUTPUT_TOPICS = (topics.NORMALS, topics.NORMAL_MAP, topics.DEPTH, topics.ALBEDO,
+                 topics.POINTS)
+"""The topics of :func:`output_messages`, in their order."""
+
+
+class Output(NamedTuple):
+    """One output: its topic, its message, and the image array and encoding it was built
+    from (for a compressed companion; the points' array is None)."""
+
+    topic: str
+    message: Image | PointCloud2
+    array: np.ndarray | None
+    encoding: str
+
+
+def output_messages(result: Reconstruction, header: Header) -> Iterator[Output]:
+    """The outputs of one burst with the burst's ``header``, in :data:`OUTPUT_TOPICS`'s
+    order: the normals (32FC3, optical frame), the normal map (rgb8, of the enhanced normals
+    if there are any), depth and albedo (32FC1), the points (x y z intensity)."""
+    normals_optical = ps_to_optical(result.normals_ps, dtype=np.float32)
+    yield Output(topics.NORMALS, array_to_image(normals_optical, encoding="32FC3",
+                                                header=header), normals_optical, "32FC3")
+    shown = result.enhanced_ps if result.enhanced_ps is not None else result.normals_ps
+    rgb = normal_map_rgb(shown, mask=result.mask)
+    yield Output(topics.NORMAL_MAP, array_to_image(rgb, encoding="rgb8", header=header), rgb,
+                 "rgb8")
+    for topic, image in ((topics.DEPTH, result.depth_m), (topics.ALBEDO, result.albedo)):
+        yield Output(topic, array_to_image(image, encoding="32FC1", header=header), image,
+                     "32FC1")
+    yield Output(topics.POINTS, points_to_cloud(result.points_optical, result.point_albedo,
+                                                header=header), None, "")
+
+
+def fingerprint_message(image: np.ndarray, stamp: Time) -> Image:
+    """The rolled print (H, W) uint8 as a mono8 Image of the burst's ``stamp`` in the print's
+    frame (``topics.FINGERPRINT_FRAME``)."""
+    header = Header(stamp=stamp, frame_id=topics.FINGERPRINT_FRAME)
+    return array_to_image(image, encoding="mono8", header=header)

@@ -1,0 +1,105 @@
+"""recon_node's parameters: the declarations (names, defaults, descriptors, checks) and the
+settings read from them (:class:`~fingerps_recon.reconstruction.worker.ReconSettings`)."""
+
+from __future__ import annotations
+
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from fingerps_recon.photometric.kernel_threads import set_thread_limit
+from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
+from fingerps_recon.reconstruction.burst_intake import BurstLimits
+from fingerps_recon.reconstruction.worker import ReconSettings
+from fingerps_ros.parameters import ParameterChecks, descriptor, one_of
+
+PARAMETERS = (
+    ("model", Model.HK.value, descriptor(
+        "Reflectance model of the normals: hk (the paper's simplified Hanrahan-Krueger "
+        "skin model, initialised from lambert) or lambert (Lambertian photometric "
+        "stereo)")),
+    ("projection", Projection.PERSPECTIVE.value, descriptor(
+        "Camera model of the views, the integration and the points: perspective (from "
+        "the burst's camera_info) or orthographic")),
+    ("hk_iterations", 5, descriptor(
+        "Levenberg-Marquardt iterations of the HK solver", min_value=1, max_value=100,
+        integer=True)),
+    ("threads", 0, descriptor(
+        "Threads of the per-pixel solvers; 0 = every core. On a machine whose other cores "
+        "are busy (driver, recorder) fewer threads can finish a burst sooner",
+        min_value=0, max_value=256, integer=True)),
+    ("queue_depth", 2, descriptor(
+        "Bursts waiting for reconstruction; the oldest is dropped beyond this",
+        min_value=1, max_value=100, integer=True, read_only=True)),
+    ("mask_threshold", 0.15, descriptor(
+        "Finger mask: fraction of the brightest level a pixel must exceed",
+        min_value=0.01, max_value=0.9)),
+    ("fingerprint", False, descriptor(
+        "Also publish the rolled-equivalent 500 ppi print of every burst on 'fingerprint' "
+        "(mono8, ridges dark; ~50 ms a burst on top of the reconstruction, so off by "
+        "default; the Scan action always makes one)")),
+    ("enhance", True, descriptor(
+        "Publish the normal map after ridge enhancement (paper Eq. 12); the normals "
+        "topic always carries the unenhanced normals")),
+    ("w", 7, descriptor("Ridge enhancement patch size (odd), pixels", min_value=3,
+                        max_value=51, integer=True)),
+    ("k", 2.5, descriptor("Ridge enhancement gain", min_value=0.0, max_value=20.0)),
+    ("working_distance", 0.09, descriptor(
+        "Camera-to-finger distance along the optical axis, metres (metric scale of "
+        "depth)", min_value=0.005, max_value=2.0)),
+    ("mono16_full_scale", 4095.0, descriptor(
+        "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
+        max_value=65535.0)),
+    ("max_image_width", BurstLimits.max_width, descriptor(
+        "Widest image accepted (bursts, dark frames, flat-field maps, the camera_info "
+        "the calibration is prepared for), pixels; wider ones are refused on arrival",
+        min_value=1, max_value=65535, integer=True)),
+    ("max_image_height", BurstLimits.max_height, descriptor(
+        "Tallest image accepted, pixels (as max_image_width)", min_value=1,
+        max_value=65535, integer=True)),
+    ("max_burst_frames", BurstLimits.max_frames, descriptor(
+        "Most frames a burst (or flat-field maps a flat field) may carry; more are "
+        "refused on arrival", min_value=3, max_value=256, integer=True)),
+    ("health_window", 5, descriptor(
+        "Recent bursts /diagnostics judges: WARN while one of them failed, ERROR when "
+        "all of them did", min_value=1, max_value=1000, integer=True, read_only=True)),
+)
+"""(name, default, descriptor) of each parameter, in the order they are declared."""
+
+
+def declare_parameters(node: Node) -> ParameterChecks:
+    """Declare :data:`PARAMETERS` on ``node`` with their checks (``w`` odd, ``model`` and
+    ``projection`` one of theirs); returns the checks, for more parameters."""
+    checks = ParameterChecks(node)
+    checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
+    checks.add("model", one_of(*(m.value for m in Model)))
+    checks.add("projection", one_of(*(m.value for m in Projection)))
+    for name, default, desc in PARAMETERS:
+        node.declare_parameter(name, default, desc)
+    return checks
+
+
+def follow_threads(node: Node) -> None:
+    """Apply ``threads`` now and every new value of it from the next burst on."""
+    set_thread_limit(int(node.get_parameter("threads").value))
+
+    def on_set(params: list[Parameter]) -> None:
+        for param in params:
+            if param.name == "threads":
+                set_thread_limit(int(param.value))
+    node.add_post_set_parameters_callback(on_set)
+
+
+def read_settings(node: Node) -> ReconSettings:
+    """The settings a burst is reconstructed with, from ``node``'s parameters now."""
+    g = node.get_parameter
+    options = ReconstructionOptions(
+        model=Model(g("model").value), hk_iterations=int(g("hk_iterations").value),
+        projection=Projection(g("projection").value),
+        mask_threshold=float(g("mask_threshold").value), enhance=bool(g("enhance").value),
+        w=int(g("w").value), k=float(g("k").value),
+        working_distance_m=float(g("working_distance").value))
+    limits = BurstLimits(max_width=int(g("max_image_width").value),
+                         max_height=int(g("max_image_height").value),
+                         max_frames=int(g("max_burst_frames").value))
+    return ReconSettings(options, limits, float(g("mono16_full_scale").value))
+

@@ -1,0 +1,379 @@
+"""recon_node's worker without the node: the calibration in force, the burst queue, the
+bursts reconstructed one by one, and the bookkeeping ``/diagnostics`` reports.
+
+:class:`ReconstructionWorker` is a plain class: the node's subscriptions hand it messages
+(``on_lights``, ``on_flat``, ``on_camera_info``, ``on_burst``), the node's worker thread runs
+:meth:`ReconstructionWorker.run`, and the node publishes what a burst made through the
+``publish`` callable it gives. The queue is bounded and drops the oldest burst (counted). A
+light calibration or flat field that cannot determine normals is refused on arrival (the
+previous one stays in force); anything a burst raises, expected or not, is logged in one
+line naming the burst and counted, and the worker goes on with the next burst. The health
+level is ERROR when all of the last ``health_window`` bursts failed, WARN while one of them
+failed or was degraded (or a refused calibration was not replaced), OK otherwise.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
+from sensor_msgs.msg import CameraInfo
+
+from fingerps_msgs.msg import Burst, FlatField, LightCalibration
+from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.photometric.kernel_warm_up import warm_up_kernels
+from fingerps_recon.photometric.pipeline import NoFingerError, ReconstructionOptions
+from fingerps_recon.reconstruction.burst_intake import (
+    BurstLimits,
+    IncompleteBurstError,
+    check_burst_size,
+    check_light_calibration,
+    flat_field_maps,
+)
+from fingerps_recon.reconstruction.burst_reconstruction import (
+    BurstReconstruction,
+    PreparedCalibrations,
+    reconstruct_burst,
+)
+from fingerps_recon.reconstruction.problem_log import LogGate, one_line
+from fingerps_recon.surface.rolled_print import RolledPrint, RolledPrintError
+from fingerps_ros.errors import FingerpsError
+
+# Outcome of a burst, for the health level.
+_OK, _WARN, _BAD = 0, 1, 2
+
+
+class Logger(Protocol):
+    """What the worker logs through: an rclpy node's logger (``throttle_duration_sec``)."""
+
+    def info(self, message: str, **kwargs: Any) -> Any:
+        """Log ``message`` at INFO."""
+
+    def warning(self, message: str, **kwargs: Any) -> Any:
+        """Log ``message`` at WARN."""
+
+    def error(self, message: str, **kwargs: Any) -> Any:
+        """Log ``message`` at ERROR."""
+
+
+@dataclass(frozen=True)
+class ReconSettings:
+    """The parameters a burst is reconstructed with, as they are now."""
+
+    options: ReconstructionOptions
+    limits: BurstLimits
+    mono16_full_scale: float
+
+
+class StageTimes:
+    """Where the recent bursts' time went, from the burst's stamp (its capture) to the
+    outputs' publication: arrival here, waiting in the queue, reconstruction, publishing."""
+
+    KEYS = ("capture_to_arrival_ms", "queue_wait_ms", "reconstruction_ms", "publish_ms",
+            "capture_to_published_ms")
+
+    def __init__(self, keep: int = 50) -> None:
+        self._rows: deque[tuple[float, ...]] = deque(maxlen=keep)
+
+    def add(self, stamp_ns: int, arrival_ns: int, start_ns: int, compute_ms: float,
+            published_ns: int) -> None:
+        """One burst: its stamp, arrival, start of work, reconstruction time and the moment
+        its last output was published (wall-clock ns)."""
+        ms = 1e-6
+        work_ms = (published_ns - start_ns) * ms
+        self._rows.append(((arrival_ns - stamp_ns) * ms, (start_ns - arrival_ns) * ms,
+                           compute_ms, work_ms - compute_ms, (published_ns - stamp_ns) * ms))
+
+    def medians(self) -> dict[str, float]:
+        """Median of each stage over the recent bursts, ms (empty before the first)."""
+        if not self._rows:
+            return {}
+        return dict(zip(self.KEYS, np.median(np.array(self._rows), axis=0), strict=True))
+
+
+class ReconstructionWorker:
+    """Reconstructs every queued burst with the calibration in force and counts the outcome.
+
+    Parameters
+    ----------
+    settings : Callable[[], ReconSettings]
+        The parameters now (read at every message and burst, so a change applies at once).
+    publish : Callable[[BurstReconstruction, Burst], bool]
+        Publishes what a burst made; False when an output was degraded (a WARN outcome).
+    logger : Logger
+        The node's logger.
+    queue_depth, health_window : int
+        Bursts waiting at most (the oldest is dropped beyond); recent bursts judged.
+    """
+
+    def __init__(self, settings: Callable[[], ReconSettings],
+                 publish: Callable[[BurstReconstruction, Burst], bool], logger: Logger, *,
+                 queue_depth: int, health_window: int) -> None:
+        self._settings = settings
+        self._publish = publish
+        self._log = logger
+        # (burst, arrival time ns) waiting for the worker
+        self._queue: deque[tuple[Burst, int]] = deque(maxlen=queue_depth)
+        self._cv = threading.Condition()
+        self._stop = False
+        self.stages = StageTimes()
+        self.dropped = self.done = self.failed = self.incomplete = self.rejected = 0
+        self.unexpected = self.calibrations_refused = self.flat_unused = 0
+        self.prints_made = self.prints_rejected = 0
+        self.last_error = self.last_problem = self.last_print_problem = ""
+        self.print_ms: deque[float] = deque(maxlen=50)
+        # outcome of each recent burst: OK, WARN (no finger, flat field not used) or BAD
+        self._outcomes: deque[int] = deque(maxlen=health_window)
+        self._refused: dict[str, str] = {}  # calibration kind -> why its last one was refused
+        self._log_gate = LogGate()
+        self.lights: LightCalibration | None = None
+        self._flat: FlatField | None = None
+        self._flat_maps: np.ndarray | None = None
+        self._camera: CameraInfo | None = None
+        self.prepared = PreparedCalibrations()
+        self.ready = False
+
+    def guarded(self, what: str, callback: Callable[..., None]) -> Callable[..., None]:
+        """``callback`` that logs and counts what it raises instead of ending the node."""
+        def run(*args: object) -> None:
+            try:
+                callback(*args)
+            except Exception as exc:  # a callback must never end the node
+                self.unexpected += 1
+                self.last_problem = f"{what}: unexpected {one_line(exc)}"
+                self._log.error(self.last_problem, throttle_duration_sec=2.0)
+        return run
+
+    # ------------------------------------------------------------------ intake
+    def _refuse(self, kind: str, reason: str) -> None:
+        """A calibration message refused on arrival: counted, and WARN until replaced."""
+        self.calibrations_refused += 1
+        self._refused[kind] = reason
+        self.last_problem = f"{kind} refused: {reason}"
+        held = self.lights if kind == "light calibration" else self._flat
+        self._log.error(f"{self.last_problem}; "
+                        + ("the previous one stays in force" if held is not None
+                           else "none is in force"))
+
+    def on_lights(self, msg: LightCalibration) -> None:
+        """A light calibration: in force from the next burst on, unless it is refused."""
+        try:
+            check_light_calibration(msg)
+        except FingerpsError as exc:
+            self._refuse("light calibration", str(exc))
+            return
+        self.lights = msg
+        self._refused.pop("light calibration", None)
+        self._log.info(f"light calibration received: {len(msg.directions)} LEDs")
+
+    def on_flat(self, msg: FlatField) -> None:
+        """A flat field: in force from the next burst on, unless it is refused."""
+        try:
+            maps = flat_field_maps(msg, self._settings().limits)
+        except FingerpsError as exc:
+            self._refuse("flat field", str(exc))
+            return
+        self._flat, self._flat_maps = msg, maps
+        self._refused.pop("flat field", None)
+        self._log.info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
+
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        """Kept so that the calibration is prepared for the camera before its first burst."""
+        self._camera = msg
+
+    def on_burst(self, msg: Burst) -> None:
+        """Queue a burst for the worker; one beyond the size bounds is refused first."""
+        try:  # refused before it takes a place in the queue
+            check_burst_size(msg, self._settings().limits)
+        except FingerpsError as exc:
+            self.rejected += 1
+            self._note(_BAD, msg, exc)
+            return
+        with self._cv:
+            if len(self._queue) == self._queue.maxlen:
+                self.dropped += 1
+                self._log.warning(
+                    f"reconstruction is behind: dropped the oldest burst ({self.dropped} so "
+                    "far)", throttle_duration_sec=5.0)
+            self._queue.append((msg, time.time_ns()))
+            self._cv.notify()
+
+    # ------------------------------------------------------------------ work
+    def run(self) -> None:
+        """The worker thread: warm the kernels, then reconstruct the queued bursts (and
+        prepare the calibration ahead while idle) until :meth:`stop`."""
+        self._warm_up()
+        while True:
+            with self._cv:
+                if not self._queue and not self._stop:
+                    self._cv.wait(timeout=0.5)
+                if self._stop:
+                    return
+                if not self._queue:
+                    idle = True
+                else:
+                    idle = False
+                    burst, arrival_ns = self._queue.popleft()
+            if idle:
+                try:
+                    self.prepare_ahead()
+                except Exception as exc:  # the worker must never die
+                    self.unexpected += 1
+                    self._log.error(f"preparing the calibration: unexpected {one_line(exc)}",
+                                    throttle_duration_sec=10.0)
+                continue
+            self.process(burst, arrival_ns)
+
+    def stop(self) -> None:
+        """Make :meth:`run` return once the burst in hand is done."""
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+
+    def _warm_up(self) -> None:
+        """Compile or load the kernels before the first burst (bursts wait meanwhile)."""
+        self._log.info("warming up the reconstruction kernels")
+        try:
+            warm = warm_up_kernels()
+        except Exception as exc:  # the worker must never die: the first burst compiles them
+            self.unexpected += 1
+            self._log.error(f"warming up the kernels failed: {one_line(exc)}; the "
+                            "first bursts compile them instead")
+            return
+        self.ready = True
+        self._log.info(f"reconstruction ready: {warm.summary}")
+
+    def process(self, burst: Burst, arrival_ns: int) -> None:
+        """Reconstruct and publish one burst; whatever it raises is counted and logged."""
+        try:
+            self._reconstruct(burst, arrival_ns)
+        except IncompleteBurstError as exc:
+            self.incomplete += 1
+            self._note(_BAD, burst, exc)
+        except NoFingerError as exc:
+            self.failed += 1
+            self._note(_WARN, burst, exc)
+        except FingerpsError as exc:
+            self.failed += 1
+            self._note(_BAD, burst, exc)
+        except Exception as exc:  # the worker must never die
+            self.failed += 1
+            self.unexpected += 1
+            self._note(_BAD, burst, exc, unexpected=True)
+
+    def prepare_ahead(self) -> None:
+        """While idle: prepare the calibration in force for the camera seen on camera_info
+        (so that its first burst does not pay for it); the bursts prepare it otherwise."""
+        lights, camera = self.lights, self._camera
+        if lights is None or camera is None or not camera.k[0] > 0:
+            return
+        shape = (int(camera.height), int(camera.width))
+        settings = self._settings()
+        limits = settings.limits
+        if not (1 <= shape[0] <= limits.max_height and 1 <= shape[1] <= limits.max_width):
+            return  # a camera_info of no size or beyond the bounds: its bursts will say so
+        maps = self._flat_maps
+        if maps is not None and maps.shape != (len(lights.directions), *shape):
+            maps = None
+        try:
+            count = self.prepared.count
+            self.prepared.get(lights, maps, np.asarray(camera.k, dtype=np.float64).reshape(3, 3),
+                              shape, settings.options)
+            if self.prepared.count != count:
+                self._log.info(
+                    f"calibration prepared for the {shape[1]}x{shape[0]} camera in "
+                    f"{self.prepared.seconds * 1e3:.0f} ms"
+                    + ("" if maps is not None else " (no flat field)"))
+        except FingerpsError as exc:  # the first burst will say it again, counted
+            self._log.warning(f"calibration not prepared: {exc}", throttle_duration_sec=10.0)
+
+    def _note(self, outcome: int, burst: Burst, exc: Exception, *,
+              unexpected: bool = False) -> None:
+        """One burst not reconstructed: remembered for the health level, logged in one
+        line naming the burst and the problem (no traceback)."""
+        problem = f"unexpected {one_line(exc)}" if unexpected else str(exc)
+        self.last_error = f"burst {burst.burst_id}: {problem}"
+        self.last_problem = self.last_error
+        self._outcomes.append(outcome)
+        if self._log_gate.opens(problem):
+            self._log.error(self.last_error)
+
+    def _reconstruct(self, burst: Burst, arrival_ns: int) -> None:
+        start_ns = time.time_ns()
+        lights = self.lights
+        if lights is None:
+            refused = self._refused.get("light calibration")
+            raise FingerpsReconError(
+                "no light calibration yet"
+                + (f" (the last one was refused: {refused})" if refused else "")
+                + ": call the calibrate_lights service (or start calib_node with a saved "
+                "calibration) before sending bursts")
+        maps = self._flat_maps
+        settings = self._settings()
+        made = reconstruct_burst(
+            burst, lights, maps, options=settings.options,
+            mono16_full_scale=settings.mono16_full_scale, prepared=self.prepared,
+            limits=settings.limits)
+        outcome = _OK
+        if maps is not None and not made.flat_field_used:
+            outcome = _WARN
+            self.flat_unused += 1
+            self.last_problem = (f"burst {burst.burst_id}: flat field {maps.shape} does not "
+                                 f"fit the images {made.images.shape}; not used")
+            self._log.warning(self.last_problem, throttle_duration_sec=10.0)
+        if not self._publish(made, burst):
+            outcome = _WARN
+        result, stamp = made.result, burst.header.stamp
+        self.stages.add(stamp.sec * 1_000_000_000 + stamp.nanosec, arrival_ns, start_ns,
+                        result.timings_ms["total"], time.time_ns())
+        self.done += 1
+        self.last_error = ""
+        self._outcomes.append(outcome)
+        stages = ", ".join(f"{k} {v:.0f}" for k, v in result.timings_ms.items() if k != "total")
+        self._log.info(
+            f"burst {burst.burst_id}: {result.mask.sum()} px, "
+            f"{result.timings_ms['total']:.0f} ms ({stages} ms)", throttle_duration_sec=2.0)
+
+    def fingerprint(self, made: BurstReconstruction, burst: Burst) -> RolledPrint | None:
+        """The burst's rolled print, timed and counted; None (logged, counted) when it
+        cannot be made."""
+        start = time.perf_counter()
+        try:
+            made_print = made.fingerprint()
+        except RolledPrintError as exc:
+            self.prints_rejected += 1
+            self.last_print_problem = f"burst {burst.burst_id}: no fingerprint: {exc}"
+            self.last_problem = self.last_print_problem
+            self._log.warning(self.last_print_problem, throttle_duration_sec=5.0)
+            return None
+        self.print_ms.append((time.perf_counter() - start) * 1e3)
+        self.prints_made += 1
+        return made_print
+
+    # ------------------------------------------------------------------ health
+    def health(self) -> tuple[bytes, str]:
+        """The diagnostic level and message: ERROR when every one of the last
+        ``health_window`` bursts failed, WARN while one of them failed or did without the
+        flat field, or a refused calibration was not replaced; OK otherwise."""
+        outcomes = list(self._outcomes)
+        bad = outcomes.count(_BAD)
+        if outcomes and bad == len(outcomes) == self._outcomes.maxlen:
+            return DiagnosticStatus.ERROR, (
+                f"the last {bad} bursts all failed; last: {self.last_problem}")
+        if self._refused:
+            return DiagnosticStatus.WARN, "; ".join(
+                f"{kind} refused: {reason}" for kind, reason in self._refused.items())
+        if self.last_error:
+            return DiagnosticStatus.WARN, self.last_error
+        if any(o != _OK for o in outcomes):
+            return DiagnosticStatus.WARN, (
+                f"{len(outcomes) - outcomes.count(_OK)} of the last {len(outcomes)} bursts "
+                f"failed or were degraded; last: {self.last_problem}")
+        return DiagnosticStatus.OK, (
+            "ok" if self.ready else "warming up: compiling or loading the solver kernels")
