@@ -1,19 +1,15 @@
-"""recon_node's parameter table (``reconstruction.parameters``) on a node of this process,
-without a graph: config/recon.yaml lists every one with its default, the settings read from
-them, the checks that refuse a bad value, and ``threads`` followed at run time."""
+"""recon_node's parameter table (``reconstruction.parameters``) on a node of this process
+(``ros_node``), without a graph: config/recon.yaml lists every one with its default, the
+settings read from them, the checks that refuse a bad value, and ``threads`` followed at run
+time."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
-import rclpy
 import yaml
-from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.signals import SignalHandlerOptions
 
 from fingerps_recon.photometric.kernel_threads import set_thread_limit, thread_limit
 from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
@@ -28,17 +24,6 @@ from fingerps_recon.reconstruction.parameters import (
 CONFIG = Path(__file__).resolve().parents[2] / "src/fingerps_recon/config/recon.yaml"
 
 
-@pytest.fixture
-def node(ros_domain: int) -> Iterator[Node]:
-    """A bare node of this process to declare recon_node's parameters on."""
-    rclpy.init(context=(context := Context()), domain_id=ros_domain,
-               signal_handler_options=SignalHandlerOptions.NO)
-    bare = rclpy.create_node("recon_parameters_test", context=context)
-    yield bare  # the lines below run after the test, failed or not
-    bare.destroy_node()
-    rclpy.try_shutdown(context=context)
-
-
 def test_the_config_file_lists_every_parameter_with_its_default() -> None:
     listed = yaml.safe_load(CONFIG.read_text())["/fingerps/recon"]["ros__parameters"]
     ours = {name: value for name, value in listed.items() if "." not in name}  # not companions
@@ -46,28 +31,28 @@ def test_the_config_file_lists_every_parameter_with_its_default() -> None:
     assert all(desc.description for _, _, desc in PARAMETERS)
 
 
-def test_the_defaults_give_the_default_settings(node: Node) -> None:
-    declare_parameters(node)
-    settings = read_settings(node)
+def test_the_defaults_give_the_default_settings(ros_node: Node) -> None:
+    declare_parameters(ros_node)
+    settings = read_settings(ros_node)
     assert settings.options == ReconstructionOptions(model=Model.HK, enhance=True)
     assert settings.limits == BurstLimits() and settings.mono16_full_scale == 4095.0
 
 
-def test_bad_values_are_refused_with_a_reason(node: Node) -> None:
-    declare_parameters(node)
+def test_bad_values_are_refused_with_a_reason(ros_node: Node) -> None:
+    declare_parameters(ros_node)
     for name, value, reason in (("w", 8, "must be odd"), ("model", "phong", "must be one of"),
                                 ("projection", "fisheye", "must be one of")):
-        result = node.set_parameters([Parameter(name, value=value)])[0]
+        result = ros_node.set_parameters([Parameter(name, value=value)])[0]
         assert not result.successful and reason in result.reason
-    assert node.set_parameters([Parameter("model", value="lambert")])[0].successful
-    assert read_settings(node).options.model is Model.LAMBERT
+    assert ros_node.set_parameters([Parameter("model", value="lambert")])[0].successful
+    assert read_settings(ros_node).options.model is Model.LAMBERT
 
 
-def test_threads_is_followed_from_the_next_burst_on(node: Node) -> None:
+def test_threads_is_followed_from_the_next_burst_on(ros_node: Node) -> None:
     try:
-        declare_parameters(node)
-        follow_threads(node)
-        node.set_parameters([Parameter("threads", value=1)])
+        declare_parameters(ros_node)
+        follow_threads(ros_node)
+        ros_node.set_parameters([Parameter("threads", value=1)])
         assert thread_limit() == 1
     finally:
         set_thread_limit(0)  # the default: every core
