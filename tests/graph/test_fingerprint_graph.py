@@ -16,7 +16,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
-from test_recon_graph import NS, _burst, _calibration, _diagnostic_values, _key
+from test_recon_graph import NS, _diagnostic_values, _key
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, LightCalibration
@@ -54,10 +54,10 @@ def _period_mm(image: np.ndarray, inside: np.ndarray) -> float:
 
 
 def test_a_burst_in_gives_a_500ppi_fingerprint_out(
-        ros_node: Node, start_node, spin_until, rig: SimulatedRig) -> None:
+        ros_node: Node, start_node, spin_until, rig: SimulatedRig, rig_messages) -> None:
     lights_pub = ros_node.create_publisher(
         LightCalibration, f"{NS}/{topics.LIGHT_CALIBRATION}", qos.CALIBRATION_QOS)
-    lights_pub.publish(_calibration(rig))
+    lights_pub.publish(rig_messages.light_calibration("graph_test"))
     burst_pub = ros_node.create_publisher(Burst, f"{NS}/{topics.BURST}", qos.BURST_QOS)
     prints: dict[tuple[int, int], Image] = {}
     clouds: dict[tuple[int, int], PointCloud2] = {}
@@ -78,7 +78,7 @@ def test_a_burst_in_gives_a_500ppi_fingerprint_out(
                            for v in _diagnostic_values(diagnostics)),
                "recon ready and calibrated")
 
-    good = _burst(rig, _images(rig, 100), 1)
+    good = rig_messages.burst(_images(rig, 100), 1)
     burst_pub.publish(good)
     spin_until(lambda: _key(good.header) in prints, "the fingerprint of the burst", timeout=60)
     message = prints[_key(good.header)]
@@ -98,7 +98,7 @@ def test_a_burst_in_gives_a_500ppi_fingerprint_out(
     small = np.zeros((rig.config.height, rig.config.width), bool)
     cy, cx = rig.config.height // 2, rig.config.width // 2
     small[cy - 60:cy + 60, cx - 60:cx + 60] = True
-    patch = _burst(rig, _images(rig, 200, mask=small), 2)
+    patch = rig_messages.burst(_images(rig, 200, mask=small), 2)
     burst_pub.publish(patch)
     spin_until(lambda: _key(patch.header) in clouds, "the small patch's cloud", timeout=60)
     spin_until(lambda: any(int(v.get("fingerprints_rejected", 0)) >= 1

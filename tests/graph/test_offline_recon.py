@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import struct
 import subprocess
 from collections.abc import Callable
@@ -27,7 +26,6 @@ import cv2
 import numpy as np
 import pytest
 import scipy.io
-from ament_index_python.packages import get_package_prefix
 
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_recon.photometric.angular_error import angular_error_deg
@@ -93,11 +91,9 @@ def _write_sphere(folder: Path, *, colour16: bool, size: tuple[int, int] = (120,
 
 
 @pytest.fixture(scope="module")
-def offline_recon() -> Callable[..., subprocess.CompletedProcess]:
+def offline_recon(installed) -> Callable[..., subprocess.CompletedProcess]:
     """``offline_recon(*args)``: run the installed executable, return the finished process."""
-    path = Path(get_package_prefix("fingerps_recon")) / "lib/fingerps_recon/offline_recon"
-    if not os.access(path, os.X_OK):
-        pytest.fail(f"{path} is not built: run 'make build' (then 'source tools/ros_env.sh')")
+    path = installed("fingerps_recon", "offline_recon")
 
     def run(*args: str | Path) -> subprocess.CompletedProcess:
         return subprocess.run([str(path), *map(str, args)], capture_output=True, text=True,
@@ -318,23 +314,22 @@ def _small_sphere(folder: Path) -> None:
     _write_sphere(folder, colour16=False, size=(40, 48), radius=16.0, count=6)
 
 
+# light_directions.txt cut to its first 5 rows, then these
+LIGHT_ROWS = {"light rows != images": [], "malformed light row": ["0.1 0.2"],
+              "zero light row": ["0 0 0"], "non-unit light row": ["0 0 2"]}
+
+
 def _spoil(folder: Path, case: str) -> list[str]:
     """Break a valid small-sphere folder in one way; returns extra arguments."""
     lights = (folder / "light_directions.txt").read_text().splitlines()
-    if case == "missing filenames.txt":
+    if case in LIGHT_ROWS:
+        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], *LIGHT_ROWS[case]]))
+    elif case == "missing filenames.txt":
         (folder / "filenames.txt").unlink()
     elif case == "listed image missing":
         (folder / "003.png").unlink()
     elif case == "image sizes differ":
         cv2.imwrite(str(folder / "003.png"), np.full((40, 50), 99, np.uint8))
-    elif case == "light rows != images":
-        (folder / "light_directions.txt").write_text("\n".join(lights[:5]))
-    elif case == "malformed light row":
-        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], "0.1 0.2"]))
-    elif case == "zero light row":
-        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], "0 0 0"]))
-    elif case == "non-unit light row":
-        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], "0 0 2"]))
     elif case == "mask size":
         cv2.imwrite(str(folder / "mask.png"), np.full((41, 48), 255, np.uint8))
     elif case == "mask selects nothing":

@@ -27,11 +27,10 @@ from collections import defaultdict
 
 import numpy as np
 import pytest
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, Vector3
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import Header
 
 from fingerps_driver.simulation import FingerTruth, Scene, SimulatedRig
@@ -50,48 +49,14 @@ OUTPUTS = {topics.NORMALS: Image, topics.NORMAL_MAP: Image, topics.DEPTH: Image,
 
 
 @pytest.fixture(scope="module")
-def rig() -> SimulatedRig:
-    return SimulatedRig()
-
-
-@pytest.fixture(scope="module")
-def images(rig: SimulatedRig) -> np.ndarray:
-    return np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(30 + k))
-                     for k in range(rig.led_count)])
-
-
-@pytest.fixture(scope="module")
 def truth(rig: SimulatedRig) -> FingerTruth:
     return rig.finger_truth()
-
-
-def _calibration(rig: SimulatedRig) -> LightCalibration:
-    directions = ps_to_optical(rig.light_directions_ps())
-    intensities = rig.light_intensities()
-    return LightCalibration(
-        header=Header(frame_id=FRAME_ID), camera_name="graph_test",
-        directions=[Vector3(x=float(x), y=float(y), z=float(z)) for x, y, z in directions],
-        relative_intensities=[float(i) for i in intensities / intensities.max()],
-        sphere_radius=rig.config.sphere_radius_m)
 
 
 @pytest.fixture(scope="module")
 def empty_images(rig: SimulatedRig) -> np.ndarray:
     return np.stack([rig.render(Scene.EMPTY, [k], rng=np.random.default_rng(40 + k))
                      for k in range(rig.led_count)])
-
-
-def _burst(rig: SimulatedRig, images: np.ndarray, burst_id: int,
-           leds: list[int] | None = None, encoding: str = "mono8") -> Burst:
-    header = Header(stamp=Time(sec=1000 + burst_id, nanosec=burst_id), frame_id=FRAME_ID)
-    count = len(images)
-    frames = [TaggedFrame(header=header, burst_id=burst_id, led_index=k, led_count=count,
-                          exposure_time=0.01, led_intensity=1.0,
-                          image=array_to_image(images[k], encoding=encoding, header=header))
-              for k in (range(count) if leds is None else leds)]
-    info = CameraInfo(header=header, width=rig.config.width, height=rig.config.height,
-                      k=[float(x) for x in rig.camera_matrix.reshape(-1)])
-    return Burst(header=header, burst_id=burst_id, frames=frames, camera_info=info)
 
 
 def _key(header: Header) -> tuple[int, int]:
@@ -105,12 +70,12 @@ def _diagnostic_values(arrays: list[DiagnosticArray]) -> list[dict[str, str]]:
 
 
 def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
-        ros_node: Node, start_node, spin_until, rig: SimulatedRig, images: np.ndarray,
-        empty_images: np.ndarray, truth: FingerTruth) -> None:
+        ros_node: Node, start_node, spin_until, rig: SimulatedRig, rig_messages,
+        finger_images: np.ndarray, empty_images: np.ndarray, truth: FingerTruth) -> None:
     # The calibration is published before recon starts: transient-local brings it.
     lights_pub = ros_node.create_publisher(
         LightCalibration, f"{NS}/{topics.LIGHT_CALIBRATION}", qos.CALIBRATION_QOS)
-    lights_pub.publish(_calibration(rig))
+    lights_pub.publish(rig_messages.light_calibration("graph_test"))
     burst_pub = ros_node.create_publisher(Burst, f"{NS}/{topics.BURST}", qos.BURST_QOS)
     received: dict[str, dict[tuple[int, int], object]] = defaultdict(dict)
     subscriptions = []
@@ -134,10 +99,10 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
                "recon to report its kernels warmed up (ready)")
     assert "reconstruction ready: " in recon.output  # one log line: compiled or loaded
 
-    incomplete = _burst(rig, images, 1, leds=[0, 1, 2, 4, 5, 6])
-    nothing_in_view = _burst(rig, empty_images, 2)
-    colour = _burst(rig, np.repeat(images[..., None], 3, axis=-1), 5, encoding="rgb8")
-    good = _burst(rig, images, 3)
+    incomplete = rig_messages.burst(finger_images, 1, leds=[0, 1, 2, 4, 5, 6])
+    nothing_in_view = rig_messages.burst(empty_images, 2)
+    colour = rig_messages.burst(np.repeat(finger_images[..., None], 3, axis=-1), 5, encoding="rgb8")
+    good = rig_messages.burst(finger_images, 3)
     for burst in (incomplete, nothing_in_view, colour, good):  # queue_depth 4: none dropped
         burst_pub.publish(burst)
     # One worker, in order: once the good burst's outputs are out, the others are done.
@@ -196,7 +161,7 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     assert counted(), _diagnostic_values(diagnostics)[-1]
 
     # A second burst of the same camera with the same calibration: nothing is prepared again.
-    again = _burst(rig, images, 4)
+    again = rig_messages.burst(finger_images, 4)
     burst_pub.publish(again)
     spin_until(lambda: all(_key(again.header) in received[name] for name in OUTPUTS),
                "the outputs of the second complete burst", timeout=20.0)
@@ -231,59 +196,60 @@ def _flat(maps: np.ndarray) -> FlatField:
                      relative_intensities=[1.0] * len(maps))
 
 
-def _malformed_bursts(rig: SimulatedRig, images: np.ndarray) -> dict[str, tuple[str, Burst]]:
-    """name -> (the counter that must count it, the burst); burst ids from 100."""
-    count = rig.led_count
+def _malformed_bursts(messages, images: np.ndarray) -> dict[str, tuple[str, Burst]]:
+    """name -> (the counter that must count it, the burst of ``messages``, the fixture
+    ``rig_messages``); burst ids from 100."""
+    count = messages.rig.led_count
     made: dict[str, tuple[str, Burst]] = {}
 
     def add(name: str, counter: str, burst: Burst) -> None:
         made[name] = (counter, burst)
 
     add("0x0 images", "bursts_rejected",
-        _burst(rig, np.zeros((count, 0, 0), np.uint8), 100))
+        messages.burst(np.zeros((count, 0, 0), np.uint8), 100))
     add("0-wide images", "bursts_rejected",
-        _burst(rig, np.zeros((count, 16, 0), np.uint8), 101))
+        messages.burst(np.zeros((count, 16, 0), np.uint8), 101))
     add("images wider than max_image_width", "bursts_rejected",
-        _burst(rig, np.full((count, 1, 4097), 200, np.uint8), 102))
-    huge = _burst(rig, images, 103)
+        messages.burst(np.full((count, 1, 4097), 200, np.uint8), 102))
+    huge = messages.burst(images, 103)
     for frame in huge.frames:  # a header claiming 7 x 100000^2 px over a few bytes
         frame.image = Image(height=100_000, width=100_000, encoding="mono8", step=100_000,
                             data=bytes(64))
     add("a 100000x100000 header over 64 bytes", "bursts_rejected", huge)
     add("more frames than max_burst_frames", "bursts_rejected",
-        _burst(rig, np.concatenate([images] * 3), 104))
-    short = _burst(rig, images, 105)
+        messages.burst(np.concatenate([images] * 3), 104))
+    short = messages.burst(images, 105)
     short.frames[2].image.data = bytes(short.frames[2].image.data)[:-10]
     add("data shorter than step x height", "bursts_failed", short)
-    stepped = _burst(rig, images, 106)
+    stepped = messages.burst(images, 106)
     stepped.frames[4].image.step = stepped.frames[4].image.width - 3
     add("step shorter than a row", "bursts_failed", stepped)
     floats = images.astype(np.float32)
     floats[:, 5, 5], floats[:, 6, 6] = np.nan, np.inf
     add("float images with NaN and inf", "bursts_failed",
-        _burst(rig, floats, 107, encoding="32FC1"))
-    nan_dark = _burst(rig, images, 108)
+        messages.burst(floats, 107, encoding="32FC1"))
+    nan_dark = messages.burst(images, 108)
     dark = np.full(images.shape[1:], np.nan, np.float32)
     nan_dark.has_dark_frame = True
     nan_dark.dark_frame = TaggedFrame(header=nan_dark.header, burst_id=108,
                                       image=array_to_image(dark, encoding="32FC1"))
     add("a NaN 32FC1 dark frame", "bursts_failed", nan_dark)
     add("duplicate LED indices", "bursts_incomplete",
-        _burst(rig, images, 109, leds=[0, 1, 2, 3, 4, 5, 5]))
-    unknown = _burst(rig, images, 110)
+        messages.burst(images, 109, leds=[0, 1, 2, 3, 4, 5, 5]))
+    unknown = messages.burst(images, 110)
     unknown.frames[6].led_index = 77
     add("an unknown LED index", "bursts_incomplete", unknown)
     return made
 
 
 def test_recon_node_survives_every_malformed_input(
-        ros_node: Node, start_node, spin_until, rig: SimulatedRig,
-        images: np.ndarray) -> None:
+        ros_node: Node, start_node, spin_until, rig: SimulatedRig, rig_messages,
+        finger_images: np.ndarray) -> None:
     lights_pub = ros_node.create_publisher(
         LightCalibration, f"{NS}/{topics.LIGHT_CALIBRATION}", qos.CALIBRATION_QOS)
     flat_pub = ros_node.create_publisher(FlatField, f"{NS}/{topics.FLAT_FIELD}",
                                          qos.CALIBRATION_QOS)
-    good_lights = _calibration(rig)
+    good_lights = rig_messages.light_calibration("graph_test")
     lights_pub.publish(good_lights)
     burst_pub = ros_node.create_publisher(Burst, f"{NS}/{topics.BURST}", qos.BURST_QOS)
     received: dict[tuple[int, int], int] = defaultdict(int)  # outputs per burst stamp
@@ -319,7 +285,7 @@ def test_recon_node_survives_every_malformed_input(
 
     # 1. Malformed bursts: each counted, none reconstructed, ERROR (the last 3 all failed).
     expected: dict[str, int] = defaultdict(int)
-    for name, (counter, burst) in _malformed_bursts(rig, images).items():
+    for name, (counter, burst) in _malformed_bursts(rig_messages, finger_images).items():
         burst_pub.publish(burst)  # one at a time (the burst topic keeps 4): each counted
         expected[counter] += 1
 
@@ -339,16 +305,16 @@ def test_recon_node_survives_every_malformed_input(
     lights = rig.light_directions_ps()
     zero = lights.copy()
     zero[3] = 0.0
-    nan_with_leds = _calibration(rig)
+    nan_with_leds = rig_messages.light_calibration("graph_test")
     nan_with_leds.relative_intensities = [float("nan")] * rig.led_count
     nan_with_leds.led_positions = [Point(x=float(x), y=float(y), z=float(z))
                                    for x, y, z in rig.led_positions_optical]
-    parallel = _calibration(rig)
+    parallel = rig_messages.light_calibration("graph_test")
     parallel.directions = [parallel.directions[0]] * rig.led_count
-    zero_msg = _calibration(rig)
+    zero_msg = rig_messages.light_calibration("graph_test")
     zero_msg.directions = [Vector3(x=float(x), y=float(y), z=float(z))
                            for x, y, z in ps_to_optical(zero)]
-    nan_maps = np.ones(images.shape, np.float32)
+    nan_maps = np.ones(finger_images.shape, np.float32)
     nan_maps[:, 100:200, 100:200] = np.nan
     refusals = [(lights_pub, zero_msg), (lights_pub, parallel), (lights_pub, nan_with_leds),
                 (flat_pub, _flat(nan_maps))]
@@ -362,7 +328,7 @@ def test_recon_node_survives_every_malformed_input(
                "recon taking the small flat field", timeout=10.0)
 
     # 3. A good burst: reconstructed without the flat field (counted); WARN, not ERROR.
-    good = _burst(rig, images, 200)
+    good = rig_messages.burst(finger_images, 200)
     burst_pub.publish(good)
     spin_until(lambda: received[_key(good.header)] == len(OUTPUTS),
                "the outputs of the good burst after the malformed inputs", timeout=30.0)
@@ -373,12 +339,12 @@ def test_recon_node_survives_every_malformed_input(
 
     # 4. Good calibrations again and good bursts flowing: back to OK.
     lights_pub.publish(good_lights)
-    flat_pub.publish(_flat(np.ones(images.shape, np.float32)))
+    flat_pub.publish(_flat(np.ones(finger_images.shape, np.float32)))
     spin_until(lambda: recon.output.count("flat field received: 7 maps") == 2,
                "recon taking the flat field of the camera's size", timeout=10.0)
     spin_until(lambda: recon.output.count("light calibration received") == 2,
                "recon taking the good light calibration again", timeout=10.0)
-    more = [_burst(rig, images, 201 + i) for i in range(3)]
+    more = [rig_messages.burst(finger_images, 201 + i) for i in range(3)]
     for burst in more:
         burst_pub.publish(burst)
     spin_until(lambda: all(received[_key(b.header)] == len(OUTPUTS) for b in more),
