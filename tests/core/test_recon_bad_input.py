@@ -26,7 +26,7 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
-from fingerps_driver.simulation import Scene, SimulatedRig
+from fingerps_driver.simulation import SimulatedRig
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_recon import recon_node
 from fingerps_recon.photometric.frames import ps_to_optical
@@ -50,17 +50,6 @@ from fingerps_ros.image_conversion import array_to_image, images_to_array
 
 OPTIONS = ReconstructionOptions(model=Model.LAMBERT)
 NAN = math.nan
-
-
-@pytest.fixture(scope="module")
-def rig() -> SimulatedRig:
-    return SimulatedRig()
-
-
-@pytest.fixture(scope="module")
-def images(rig: SimulatedRig) -> np.ndarray:
-    return np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(30 + k))
-                     for k in range(rig.led_count)])
 
 
 def calibration(rig: SimulatedRig, *, directions_ps: np.ndarray | None = None,
@@ -117,7 +106,7 @@ def refused(msg: Burst, lights: LightCalibration, *, match: str,
 
 # ------------------------------------------------------------------ malformed bursts
 @pytest.mark.parametrize("shape", [(0, 0), (0, 16), (16, 0)])
-def test_empty_images_are_refused(rig: SimulatedRig, images: np.ndarray,
+def test_empty_images_are_refused(rig: SimulatedRig, finger_images: np.ndarray,
                                   shape: tuple[int, int]) -> None:
     prepared = PreparedCalibrations()
     empty = np.zeros((rig.led_count, *shape), dtype=np.uint8)
@@ -125,19 +114,19 @@ def test_empty_images_are_refused(rig: SimulatedRig, images: np.ndarray,
     with pytest.raises(FingerpsError, match="empty"):
         check_burst_size(msg, BurstLimits())
     refused(msg, calibration(rig), match="empty", prepared=prepared)
-    reconstructs(rig, images, prepared)
+    reconstructs(rig, finger_images, prepared)
 
 
 def test_images_beyond_the_bounds_are_refused_before_they_are_read(
-        rig: SimulatedRig, images: np.ndarray) -> None:
+        rig: SimulatedRig, finger_images: np.ndarray) -> None:
     small = BurstLimits(max_width=600, max_height=4096, max_frames=16)
-    msg = burst(rig, images)  # 659 px wide
+    msg = burst(rig, finger_images)  # 659 px wide
     refused(msg, calibration(rig), match="beyond max_image_width", limits=small)
     # A header claiming 100000 x 100000 px over a few bytes: refused at once, by the bounds
     # and, without them, by the conversion before it allocates the stack (70 GB).
     huge = Image(height=100_000, width=100_000, encoding="mono8", step=100_000,
                  data=bytes(64))
-    msg = burst(rig, images)
+    msg = burst(rig, finger_images)
     for frame in msg.frames:
         frame.image = huge
     start = time.perf_counter()
@@ -148,18 +137,19 @@ def test_images_beyond_the_bounds_are_refused_before_they_are_read(
     assert time.perf_counter() - start < 1.0
 
 
-def test_too_many_frames_are_refused(rig: SimulatedRig, images: np.ndarray) -> None:
-    msg = burst(rig, images, leds=list(range(17)))
+def test_too_many_frames_are_refused(rig: SimulatedRig, finger_images: np.ndarray) -> None:
+    msg = burst(rig, finger_images, leds=list(range(17)))
     with pytest.raises(FingerpsError, match="max_burst_frames 16"):
         check_burst_size(msg, BurstLimits())
     refused(msg, calibration(rig), match="max_burst_frames")
 
 
-def test_dark_and_repeat_frames_are_bounded_too(rig: SimulatedRig, images: np.ndarray) -> None:
-    msg = burst(rig, images, dark=Image(height=0, width=0, encoding="mono8"))
+def test_dark_and_repeat_frames_are_bounded_too(rig: SimulatedRig,
+                                                finger_images: np.ndarray) -> None:
+    msg = burst(rig, finger_images, dark=Image(height=0, width=0, encoding="mono8"))
     with pytest.raises(FingerpsError, match="empty"):
         check_burst_size(msg, BurstLimits())
-    msg = burst(rig, images)
+    msg = burst(rig, finger_images)
     msg.has_repeat_frame = True
     msg.repeat_frame.image = Image(height=5000, width=10, encoding="mono8", step=10)
     with pytest.raises(FingerpsError, match="beyond"):
@@ -167,9 +157,9 @@ def test_dark_and_repeat_frames_are_bounded_too(rig: SimulatedRig, images: np.nd
 
 
 @pytest.mark.parametrize("fault", ["short data", "step below a row", "step beyond the data"])
-def test_step_and_data_that_disagree_are_refused(rig: SimulatedRig, images: np.ndarray,
+def test_step_and_data_that_disagree_are_refused(rig: SimulatedRig, finger_images: np.ndarray,
                                                  fault: str) -> None:
-    msg = burst(rig, images)
+    msg = burst(rig, finger_images)
     image = msg.frames[3].image
     if fault == "short data":
         image.data = bytes(image.data)[:-1]
@@ -179,43 +169,44 @@ def test_step_and_data_that_disagree_are_refused(rig: SimulatedRig, images: np.n
         image.step = image.width + 1
     prepared = PreparedCalibrations()
     refused(msg, calibration(rig), match="too few", prepared=prepared)
-    reconstructs(rig, images, prepared)
+    reconstructs(rig, finger_images, prepared)
 
 
 @pytest.mark.parametrize("leds", [[0, 1, 2, 3, 4, 5, 5], [0, 1, 2, 3, 4, 5, 99],
                                   [0, 1, 2, 3, 4, 5, 6, 6], [0, 1, 2, 3, 4, 5]])
-def test_wrong_or_duplicate_led_indices_are_refused(rig: SimulatedRig, images: np.ndarray,
+def test_wrong_or_duplicate_led_indices_are_refused(rig: SimulatedRig, finger_images: np.ndarray,
                                                     leds: list[int]) -> None:
-    refused(burst(rig, images, leds=leds), calibration(rig), match="LEDs",
+    refused(burst(rig, finger_images, leds=leds), calibration(rig), match="LEDs",
             error=IncompleteBurstError)
 
 
-def test_float_images_with_nan_are_refused(rig: SimulatedRig, images: np.ndarray) -> None:
-    floats = images.astype(np.float32)
+def test_float_images_with_nan_are_refused(rig: SimulatedRig, finger_images: np.ndarray) -> None:
+    floats = finger_images.astype(np.float32)
     floats[:, 10, 10] = NAN
     floats[:, 11, 11] = math.inf
     refused(burst(rig, floats, encoding="32FC1"), calibration(rig), match="one grey level")
 
 
 def test_a_dark_frame_of_another_encoding_or_with_nan_is_refused(
-        rig: SimulatedRig, images: np.ndarray) -> None:
-    dark = np.zeros(images.shape[1:], dtype=np.float32)
+        rig: SimulatedRig, finger_images: np.ndarray) -> None:
+    dark = np.zeros(finger_images.shape[1:], dtype=np.float32)
     dark[100:200, 100:200] = NAN
     nan_dark = array_to_image(dark, encoding="32FC1")
     prepared = PreparedCalibrations()
-    refused(burst(rig, images, dark=nan_dark), calibration(rig), match="dark frame",
+    refused(burst(rig, finger_images, dark=nan_dark), calibration(rig), match="dark frame",
             prepared=prepared)
     small = array_to_image(np.zeros((10, 10), np.uint8), encoding="mono8")
-    refused(burst(rig, images, dark=small), calibration(rig), match="dark frame",
+    refused(burst(rig, finger_images, dark=small), calibration(rig), match="dark frame",
             prepared=prepared)
-    reconstructs(rig, images, prepared)
+    reconstructs(rig, finger_images, prepared)
 
 
 @pytest.mark.parametrize("k", [np.full((3, 3), NAN), np.diag([math.inf, 1.0, 1.0]),
                                np.diag([600.0, -600.0, 1.0])])
 def test_a_camera_matrix_that_is_not_finite_and_positive_is_refused(
-        rig: SimulatedRig, images: np.ndarray, k: np.ndarray) -> None:
-    text = refused(burst(rig, images, k=k), calibration(rig), match="intrinsics|camera matrix")
+        rig: SimulatedRig, finger_images: np.ndarray, k: np.ndarray) -> None:
+    text = refused(burst(rig, finger_images, k=k), calibration(rig),
+                   match="intrinsics|camera matrix")
     assert "\n" not in text
 
 
@@ -264,31 +255,32 @@ def _degenerate(rig: SimulatedRig) -> dict[str, LightCalibration]:
 
 
 @pytest.mark.parametrize("case", list(_degenerate(SimulatedRig())))
-def test_degenerate_light_calibrations_are_refused(rig: SimulatedRig, images: np.ndarray,
+def test_degenerate_light_calibrations_are_refused(rig: SimulatedRig, finger_images: np.ndarray,
                                                    case: str) -> None:
     lights = _degenerate(rig)[case]
     with pytest.raises(FingerpsError):
         check_light_calibration(lights)
     prepared = PreparedCalibrations()
     with pytest.raises(FingerpsError):
-        reconstruct_burst(burst(rig, images), lights, None, options=OPTIONS, prepared=prepared)
-    reconstructs(rig, images, prepared)
+        reconstruct_burst(burst(rig, finger_images), lights, None, options=OPTIONS,
+                          prepared=prepared)
+    reconstructs(rig, finger_images, prepared)
 
 
 def test_leds_that_cannot_light_the_finger_are_refused_where_used(
-        rig: SimulatedRig, images: np.ndarray) -> None:
+        rig: SimulatedRig, finger_images: np.ndarray) -> None:
     leds = rig.led_positions_optical
     for bad, match in ((np.repeat(leds[:1], 7, axis=0), "parallel or coplanar"),
                        (leds + np.array([0.0, 0.0, 0.2]), "beyond the working distance")):
         lights = calibration(rig, leds=bad)
         check_light_calibration(lights)  # finite: only the camera and distance tell
-        refused(burst(rig, images), lights, match=match)
+        refused(burst(rig, finger_images), lights, match=match)
 
 
-def test_the_good_calibrations_pass(rig: SimulatedRig, images: np.ndarray) -> None:
+def test_the_good_calibrations_pass(rig: SimulatedRig, finger_images: np.ndarray) -> None:
     check_light_calibration(calibration(rig))
     check_light_calibration(calibration(rig, leds=rig.led_positions_optical))
-    reconstructs(rig, images, PreparedCalibrations())
+    reconstructs(rig, finger_images, PreparedCalibrations())
 
 
 # ------------------------------------------------------------------ flat fields
@@ -329,16 +321,16 @@ def test_a_good_flat_field_is_taken(rig: SimulatedRig) -> None:
 
 
 def test_nan_flat_maps_are_refused_where_used_too(rig: SimulatedRig,
-                                                  images: np.ndarray) -> None:
+                                                  finger_images: np.ndarray) -> None:
     # Maps that never went through flat_field_maps (scan_node, an old recon): refused by the
     # preparation, with the near lights (which do not divide by them) as with distant ones.
-    maps = np.ones(images.shape, dtype=np.float32)
+    maps = np.ones(finger_images.shape, dtype=np.float32)
     maps[:, 200:300, 300:400] = NAN
     prepared = PreparedCalibrations()
     for lights in (calibration(rig), calibration(rig, leds=rig.led_positions_optical)):
-        refused(burst(rig, images), lights, flat=maps, match="non-finite|NaN",
+        refused(burst(rig, finger_images), lights, flat=maps, match="non-finite|NaN",
                 prepared=prepared)
-    reconstructs(rig, images, prepared, flat=np.ones(images.shape, np.float32))
+    reconstructs(rig, finger_images, prepared, flat=np.ones(finger_images.shape, np.float32))
 
 
 # ------------------------------------------------------------------ what the node logs
@@ -361,7 +353,7 @@ def test_the_log_gate_lets_each_problem_through_once_per_period() -> None:
 
 # ------------------------------------------------------------------ the node's worker
 def test_the_worker_survives_an_unexpected_error(
-        rig: SimulatedRig, images: np.ndarray, ros_domain: int,
+        rig: SimulatedRig, finger_images: np.ndarray, ros_domain: int,
         monkeypatch: pytest.MonkeyPatch) -> None:
     real = worker.reconstruct_burst
 
@@ -379,7 +371,7 @@ def test_the_worker_survives_an_unexpected_error(
         node = recon_node.ReconNode(context=context)
         node._recon.on_lights(calibration(rig))
         for burst_id in (1, 2):
-            good = burst(rig, images)
+            good = burst(rig, finger_images)
             good.burst_id = burst_id
             node._recon.on_burst(good)
         deadline = time.monotonic() + 60.0

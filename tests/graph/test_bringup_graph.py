@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import re
 import signal
-import time
 from pathlib import Path
 
 import pytest
@@ -27,12 +26,6 @@ CONFIGS = {"driver": ("fingerps_driver", "driver.yaml"),
            "recorder": ("fingerps_recon", "recorder.yaml"),
            "scan": ("fingerps_recon", "scan.yaml")}
 ROS_DEFAULTS = {"use_sim_time", "start_type_description_service"}
-
-
-@pytest.fixture(autouse=True)
-def _own_ros_home(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    """calib_node's default calibration_dir lies under ROS_HOME: keep it in the test."""
-    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
 
 
 def _config(package: str, name: str) -> Path:
@@ -75,13 +68,7 @@ def test_signals_repeated_while_bringup_stops_change_nothing(
                          str(_write(tmp_path / "sim.yaml", params)))
     for name in NODES:
         bringup.wait_in_graph(ros_node, name, NS, timeout=60.0)
-    bringup.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + 40.0
-    sent = 1
-    while bringup.running() and time.monotonic() < deadline:
-        bringup.send_signal(signal.SIGTERM if sent % 2 else signal.SIGINT)
-        sent += 1
-        time.sleep(0.01)
+    bringup.signal_until_exit(timeout=40.0)
     assert bringup.wait(timeout=10.0) == 0, bringup.output
     assert "Traceback" not in bringup.output, bringup.output
     assert re.search(r"stopped: driver_node 0, calib_node 0, recon_node 0, recorder_node 0, "
