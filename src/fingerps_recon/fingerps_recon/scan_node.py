@@ -36,7 +36,11 @@ from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
-from fingerps_recon.recon_node import BurstReconstruction, PreparedCalibrations, reconstruct_burst
+from fingerps_recon.reconstruction.burst_reconstruction import (
+    BurstReconstruction,
+    PreparedCalibrations,
+    reconstruct_burst,
+)
 from fingerps_recon.scan.scan_sequence import (
     GoalEnd,
     ScanAbortedError,
