@@ -8,7 +8,8 @@ one ``rig.render(Scene.FINGER, [k], rng=...)`` per LED, with sensor noise, as th
 renders it.
 
 Reconstruction: ``pipeline.reconstruct_prepared`` with ``ReconstructionOptions(model=...,
-enhance=True)``, HK and Lambertian, as recon_node runs it (``recon_node.reconstruct_burst``)
+enhance=True)``, HK and Lambertian, as recon_node runs it
+(``burst_reconstruction.reconstruct_burst``)
 with a calibration prepared once (``prepare_calibration``) from the rig's TRUE LED positions
 (``rig.led_positions_optical``: the near-light model), the true apex directions
 (``rig.light_directions_ps()``, checked only when LED positions are given) and the flat field

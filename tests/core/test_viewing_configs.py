@@ -16,7 +16,7 @@ import yaml
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 from std_msgs.msg import Header
 
-from fingerps_recon.recorder_node import TOPIC_TABLE
+from fingerps_recon.sessions.session_topics import TOPIC_TABLE
 from fingerps_ros import topics
 from fingerps_ros.point_cloud_conversion import points_to_cloud
 

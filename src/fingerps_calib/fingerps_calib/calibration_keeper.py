@@ -20,7 +20,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, TypeVar
+from typing import TypeVar
 
 import numpy as np
 
@@ -62,19 +62,13 @@ from fingerps_calib.lights.sphere_calibration import (
     calibrate_lights,
     check_radius,
 )
+from fingerps_ros.log import Log
 
 DEFAULT_FRAME_ID = "fingerps_camera_optical_frame"
 LIGHTS_PICTURE = "lights.png"
 REFUSED_LIGHTS_PICTURE = "lights_rejected.png"
 FLAT_FIELD_PICTURE = "flat_field.png"
 
-
-class Log(Protocol):
-    """Where the keeper logs: calib_node's logger (or a ``logging.Logger``)."""
-
-    def info(self, message: str) -> object: ...
-    def warning(self, message: str) -> object: ...
-    def error(self, message: str) -> object: ...
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,8 @@ from fingerps_driver.capture.burst import BurstResult, capture_burst
 from fingerps_driver.capture.burst_plan import BurstPlan
 from fingerps_driver.capture.capture_rate import CaptureRate
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.log import Log
 from fingerps_driver.simulation import Scene
+from fingerps_ros.log import Log
 
 TIMING_WINDOW = 200
 """Bursts over which the diagnostics' burst and publish time medians/maxima are taken."""

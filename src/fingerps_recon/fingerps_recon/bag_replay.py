@@ -9,7 +9,8 @@ publishes them back to back. ``start``/``stop`` are seconds after the bag's firs
 Calibration topics (offered transient-local when recorded) are published with
 `fingerps_ros.qos.CALIBRATION_QOS`, and the last calibration message before ``start`` is
 published when playback begins, so a consumer gets the calibration in force; other known
-topics get the recorder's QoS (`recorder_node.TOPIC_TABLE`), unknown ones reliable depth 10.
+topics get the recorder's QoS (`sessions.session_topics.TOPIC_TABLE`), unknown ones reliable
+depth 10.
 ``wait_for_subscribers`` holds each non-calibration topic's first message until that many
 subscribers have matched (a volatile topic's messages published before would be lost).
 
@@ -34,8 +35,8 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.recorder_node import TOPIC_TABLE
 from fingerps_recon.sessions.bag_reader import BagMessage, SessionBagReader, message_class
+from fingerps_recon.sessions.session_topics import TOPIC_TABLE
 from fingerps_ros import qos
 from fingerps_ros.node_runner import StartupError, run_node
 from fingerps_ros.parameters import ParameterChecks, descriptor

@@ -33,14 +33,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon.errors import FingerpsReconError
-
-# PreparedCalibrations and reconstruct_burst: re-exported for scan_node, which imports them
-# from here (their home is reconstruction.burst_reconstruction).
-from fingerps_recon.reconstruction.burst_reconstruction import (  # noqa: F401
-    BurstReconstruction,
-    PreparedCalibrations,
-    reconstruct_burst,
-)
+from fingerps_recon.reconstruction.burst_reconstruction import BurstReconstruction
 from fingerps_recon.reconstruction.diagnostics import reconstruction_status
 from fingerps_recon.reconstruction.outputs import (
     OUTPUT_TOPICS,

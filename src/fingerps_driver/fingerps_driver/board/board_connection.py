@@ -23,7 +23,7 @@ from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorCon
 from fingerps_driver.board.board_protocol import mask_to_indices
 from fingerps_driver.board.led_board import BoardError, LedBoard
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.log import Log
+from fingerps_ros.log import Log
 
 SIM_PORT = "sim"
 """``port`` of the built-in board emulator."""

@@ -24,8 +24,8 @@ from fingerps_driver.cameras.camera_folder import FolderCamera
 from fingerps_driver.cameras.camera_info_manager import CameraInfoManager
 from fingerps_driver.cameras.camera_opencv import OpenCvCamera, parse_device
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.log import Log
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
+from fingerps_ros.log import Log
 
 FALLBACK_SOURCE = "the simulated rig's true intrinsics"
 

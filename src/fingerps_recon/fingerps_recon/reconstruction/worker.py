@@ -19,7 +19,6 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -44,22 +43,11 @@ from fingerps_recon.reconstruction.burst_reconstruction import (
 from fingerps_recon.reconstruction.problem_log import LogGate, one_line
 from fingerps_recon.surface.rolled_print import RolledPrint, RolledPrintError
 from fingerps_ros.errors import FingerpsError
+from fingerps_ros.log import Log
 
 # Outcome of a burst, for the health level.
 _OK, _WARN, _BAD = 0, 1, 2
 
-
-class Logger(Protocol):
-    """What the worker logs through: an rclpy node's logger (``throttle_duration_sec``)."""
-
-    def info(self, message: str, **kwargs: Any) -> Any:
-        """Log ``message`` at INFO."""
-
-    def warning(self, message: str, **kwargs: Any) -> Any:
-        """Log ``message`` at WARN."""
-
-    def error(self, message: str, **kwargs: Any) -> Any:
-        """Log ``message`` at ERROR."""
 
 
 @dataclass(frozen=True)
@@ -106,14 +94,14 @@ class ReconstructionWorker:
         The parameters now (read at every message and burst, so a change applies at once).
     publish : Callable[[BurstReconstruction, Burst], bool]
         Publishes what a burst made; False when an output was degraded (a WARN outcome).
-    logger : Logger
+    logger : Log
         The node's logger.
     queue_depth, health_window : int
         Bursts waiting at most (the oldest is dropped beyond); recent bursts judged.
     """
 
     def __init__(self, settings: Callable[[], ReconSettings],
-                 publish: Callable[[BurstReconstruction, Burst], bool], logger: Logger, *,
+                 publish: Callable[[BurstReconstruction, Burst], bool], logger: Log, *,
                  queue_depth: int, health_window: int) -> None:
         self._settings = settings
         self._publish = publish

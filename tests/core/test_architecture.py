@@ -1,0 +1,98 @@
+"""The plan of the house (ARCHITECTURE.md), checked on the source: who may import whom, that
+the science rooms know nothing of ROS, and that nodes stay thin."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[2] / "src"
+PACKAGES = {  # python package -> its folder
+    "fingerps_ros": SRC / "fingerps_msgs" / "fingerps_ros",
+    "fingerps_recon": SRC / "fingerps_recon" / "fingerps_recon",
+    "fingerps_calib": SRC / "fingerps_calib" / "fingerps_calib",
+    "fingerps_driver": SRC / "fingerps_driver" / "fingerps_driver",
+}
+# Each package may import only the packages below it (interfaces and plumbing at the bottom).
+MAY_IMPORT = {
+    "fingerps_ros": set(),
+    "fingerps_recon": {"fingerps_ros"},
+    "fingerps_calib": {"fingerps_ros", "fingerps_recon"},
+    "fingerps_driver": {"fingerps_ros", "fingerps_recon", "fingerps_calib"},
+}
+# Known exceptions, each with its reason (ARCHITECTURE.md, "Exceptions").
+EXCEPTIONS = {
+    # a leaf command: loads calib_node's saved calibration files for --calibration
+    ("fingerps_recon.offline.offline_tune", "fingerps_calib"),
+}
+# Rooms of plain science: numpy in, numpy out, no ROS.
+SCIENCE_ROOMS = (
+    "fingerps_recon.photometric", "fingerps_recon.surface", "fingerps_recon.scan",
+    "fingerps_recon.offline", "fingerps_calib.lights", "fingerps_driver.board",
+    "fingerps_driver.cameras", "fingerps_driver.capture", "fingerps_driver.simulation",
+)
+ROS_MODULES = ("rclpy", "sensor_msgs", "std_msgs", "fingerps_msgs", "diagnostic_msgs",
+               "rcl_interfaces", "builtin_interfaces", "geometry_msgs", "action_msgs")
+MAX_NODE_LINES = 300
+
+
+def _modules() -> dict[str, tuple[Path, set[str]]]:
+    """Every module of the four packages: dotted name -> (file, modules it imports)."""
+    found = {}
+    for package, folder in PACKAGES.items():
+        for path in sorted(folder.rglob("*.py")):
+            parts = path.relative_to(folder).with_suffix("").parts
+            name = ".".join((package, *parts)).removesuffix(".__init__")
+            imported = set()
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.Import):
+                    imported.update(alias.name for alias in node.names)
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    imported.add(node.module)
+                    imported.update(f"{node.module}.{alias.name}" for alias in node.names)
+            found[name] = (path, imported)
+    return found
+
+
+MODULES = _modules()
+NODES = sorted(name for name in MODULES if name.endswith("_node") or name.endswith("bag_replay"))
+
+
+def test_the_modules_are_found() -> None:
+    assert len(MODULES) > 80 and "fingerps_ros.qos" in MODULES
+    assert "fingerps_recon.recon_node" in NODES and "fingerps_driver.driver_node" in NODES
+
+
+@pytest.mark.parametrize("package", sorted(PACKAGES))
+def test_no_package_imports_one_above_it(package: str) -> None:
+    wrong = sorted(
+        f"{name} imports {imported}"
+        for name, (_, imports) in MODULES.items() if name.split(".")[0] == package
+        for imported in imports
+        if (top := imported.split(".")[0]) in PACKAGES and top != package
+        and top not in MAY_IMPORT[package] and (name, top) not in EXCEPTIONS)
+    assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("room", SCIENCE_ROOMS)
+def test_science_rooms_know_nothing_of_ros(room: str) -> None:
+    wrong = sorted(
+        f"{name} imports {imported}"
+        for name, (_, imports) in MODULES.items() if name == room or name.startswith(room + ".")
+        for imported in imports if imported.split(".")[0] in ROS_MODULES)
+    assert not wrong, "\n".join(wrong)
+
+
+def test_no_module_imports_a_node() -> None:
+    wrong = sorted(f"{name} imports {imported}" for name, (_, imports) in MODULES.items()
+                   for imported in imports
+                   if any(imported == node or imported.startswith(node + ".") for node in NODES))
+    assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_nodes_are_thin(node: str) -> None:
+    lines = len(MODULES[node][0].read_text().splitlines())
+    assert lines <= MAX_NODE_LINES, f"{node}: {lines} lines (at most {MAX_NODE_LINES})"
