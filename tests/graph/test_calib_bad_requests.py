@@ -36,12 +36,6 @@ FLAT_TOPIC = f"{NS}/{topics.FLAT_FIELD}"
 DIAGNOSTIC_NAME = "calib: calibration"
 
 
-@pytest.fixture(autouse=True)
-def _own_ros_home(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """calib_node saves and loads its calibration under $ROS_HOME: one per test."""
-    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
-
-
 @pytest.fixture(scope="module")
 def rig() -> SimulatedRig:
     return SimulatedRig(RigConfig())
@@ -71,13 +65,6 @@ def _camera_info(rig: SimulatedRig) -> CameraInfo:
     return info
 
 
-def _call(client, request, spin_until, *, timeout: float = 60.0):
-    assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-    future = client.call_async(request)
-    spin_until(future.done, f"the response of {client.srv_name}", timeout=timeout)
-    return future.result()
-
-
 def _latest(received: list, spin_until, what: str):
     spin_until(lambda: received, what)
     return received[-1]
@@ -99,8 +86,8 @@ def _assert_refused(response, calib, *words: str) -> None:
 class _Graph:
     """The test's clients and subscriptions of calib_node's services and topics."""
 
-    def __init__(self, ros_node: Node, rig: SimulatedRig) -> None:
-        self.node, self.rig = ros_node, rig
+    def __init__(self, ros_node: Node, rig: SimulatedRig, call_service) -> None:
+        self.node, self.rig, self.call_service = ros_node, rig, call_service
         self.flat_client = ros_node.create_client(CalibrateFlatField,
                                                   f"{NS}/{topics.CALIBRATE_FLAT_FIELD}")
         self.lights_client = ros_node.create_client(CalibrateLights,
@@ -118,12 +105,14 @@ class _Graph:
             lambda msg: self.statuses.extend(
                 s for s in msg.status if s.name == DIAGNOSTIC_NAME), 10)
 
-    def flat(self, frames: list[TaggedFrame], spin_until):
-        return _call(self.flat_client, CalibrateFlatField.Request(frames=frames), spin_until)
+    def flat(self, frames: list[TaggedFrame]):
+        return self.call_service(self.flat_client, CalibrateFlatField.Request(frames=frames),
+                                 timeout=60.0)
 
-    def lights_call(self, radius: float, frames: list[TaggedFrame], spin_until):
-        return _call(self.lights_client,
-                     CalibrateLights.Request(sphere_radius=radius, frames=frames), spin_until)
+    def lights_call(self, radius: float, frames: list[TaggedFrame]):
+        return self.call_service(
+            self.lights_client, CalibrateLights.Request(sphere_radius=radius, frames=frames),
+            timeout=60.0)
 
     def publish_camera_info(self, spin_until, frames: list[TaggedFrame]):
         """Publish the rig's camera_info (10 Hz) until calib_node has it; returns the light
@@ -134,7 +123,7 @@ class _Graph:
         answers = []
 
         def received() -> bool:
-            answers.append(self.lights_call(0.0, frames, spin_until))
+            answers.append(self.lights_call(0.0, frames))
             return not answers[-1].message.startswith("no camera intrinsics")
         spin_until(received, "calib_node to receive the camera_info", timeout=30.0)
         self.refused_while_waiting = len(answers) - 1
@@ -151,23 +140,23 @@ def _stopped_cleanly(calib) -> None:
 
 
 def test_bad_flat_field_frames_are_refused_and_the_node_keeps_serving(
-        ros_node: Node, start_node, spin_until, rig) -> None:
+        ros_node: Node, start_node, spin_until, call_service, rig) -> None:
     calib = _start_calib(ros_node, start_node)
-    graph = _Graph(ros_node, rig)
+    graph = _Graph(ros_node, rig, call_service)
     white = _render(rig, Scene.WHITE_TARGET)
 
     # Before calib_node has seen a camera_info (its image size is unknown).
-    good = graph.flat(white, spin_until)
+    good = graph.flat(white)
     assert good.success, good.message
     for size in (0, 1, 4):
-        refused = graph.flat(_blank(rig, size), spin_until)
+        refused = graph.flat(_blank(rig, size))
         _assert_refused(refused, calib, f"{size}x{size}", "64x64")
     assert _latest(graph.flats, spin_until, "the flat field in force") == good.flat_field
 
     # Once the camera's size is known, frames of another size are refused.
     first_lights = graph.publish_camera_info(spin_until, _render(rig, Scene.SPHERE))
     assert first_lights.success, first_lights.message
-    wrong_size = graph.flat(_blank(rig, 64), spin_until)
+    wrong_size = graph.flat(_blank(rig, 64))
     _assert_refused(wrong_size, calib, "64x64", f"{rig.config.width}x{rig.config.height}")
     assert graph.flats[-1] == good.flat_field
     refused = str(4 + graph.refused_while_waiting)
@@ -176,7 +165,7 @@ def test_bad_flat_field_frames_are_refused_and_the_node_keeps_serving(
     assert graph.statuses[-1].level == DiagnosticStatus.WARN, graph.statuses[-1]
     assert "64x64" in graph.values()["last_error"]
 
-    again = graph.flat(white, spin_until)  # the next good call
+    again = graph.flat(white)  # the next good call
     assert again.success, again.message
     spin_until(lambda: graph.statuses[-1].level == DiagnosticStatus.OK,
                "/diagnostics back to OK")
@@ -186,16 +175,16 @@ def test_bad_flat_field_frames_are_refused_and_the_node_keeps_serving(
 
 @pytest.mark.parametrize("radius", [1e-300, -1.0, math.inf, 1e300, math.nan, 1.0])
 def test_a_bad_sphere_radius_is_refused_and_the_node_keeps_serving(
-        ros_node: Node, start_node, spin_until, rig, radius: float) -> None:
+        ros_node: Node, start_node, spin_until, call_service, rig, radius: float) -> None:
     calib = _start_calib(ros_node, start_node)
-    graph = _Graph(ros_node, rig)
+    graph = _Graph(ros_node, rig, call_service)
     sphere = _render(rig, Scene.SPHERE)
     good = graph.publish_camera_info(spin_until, sphere)
     assert good.success, good.message
     in_force = _latest(graph.lights, spin_until, "the light calibration in force")
     assert in_force == good.calibration
 
-    refused = graph.lights_call(radius, sphere, spin_until)
+    refused = graph.lights_call(radius, sphere)
     _assert_refused(refused, calib, "sphere_radius", "between 0.0005 and 0.05 m",
                     "stays in force")
     spin_until(lambda: graph.statuses and graph.statuses[-1].level == DiagnosticStatus.WARN,
@@ -206,7 +195,7 @@ def test_a_bad_sphere_radius_is_refused_and_the_node_keeps_serving(
     assert "sphere_radius" in values["last_error"], values
     assert graph.lights[-1] == good.calibration  # nothing new published
 
-    again = graph.lights_call(rig.config.sphere_radius_m, sphere, spin_until)
+    again = graph.lights_call(rig.config.sphere_radius_m, sphere)
     assert again.success, again.message
     _stopped_cleanly(calib)
 
@@ -236,9 +225,9 @@ def test_an_unexpected_error_in_a_callback_is_answered_logged_and_counted(
         rclpy.try_shutdown()
 
 
-def _set(client, name: str, value: ParameterValue, spin_until):
-    response = _call(client, SetParameters.Request(
-        parameters=[Parameter(name=name, value=value)]), spin_until)
+def _set(client, name: str, value: ParameterValue, call_service):
+    response = call_service(client, SetParameters.Request(
+        parameters=[Parameter(name=name, value=value)]), timeout=60.0)
     return response.results[0]
 
 
@@ -247,12 +236,12 @@ def _double_array(values: list[float]) -> ParameterValue:
 
 
 def test_bad_parameters_are_refused_with_a_reason(
-        ros_node: Node, start_node, spin_until) -> None:
+        ros_node: Node, start_node, call_service) -> None:
     calib = _start_calib(ros_node, start_node)
     setter = ros_node.create_client(SetParameters, f"{NS}/calib/set_parameters")
     getter = ros_node.create_client(GetParameters, f"{NS}/calib/get_parameters")
     names = ["reference_point", "camera_name", "sphere_radius"]
-    before = _call(getter, GetParameters.Request(names=names), spin_until).values
+    before = call_service(getter, GetParameters.Request(names=names), timeout=60.0).values
 
     bad = [
         ("reference_point", _double_array([0.0, 0.0, math.inf]), "finite"),
@@ -267,14 +256,14 @@ def test_bad_parameters_are_refused_with_a_reason(
         bad.append(("sphere_radius", ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
                                                     double_value=radius), "sphere_radius"))
     for name, value, reason in bad:
-        result = _set(setter, name, value, spin_until)
+        result = _set(setter, name, value, call_service)
         assert not result.successful, (name, value)
         assert reason in result.reason, result.reason
-    after = _call(getter, GetParameters.Request(names=names), spin_until).values
+    after = call_service(getter, GetParameters.Request(names=names), timeout=60.0).values
     assert after == before
 
     good = _set(setter, "camera_name", ParameterValue(
-        type=ParameterType.PARAMETER_STRING, string_value="rig_2"), spin_until)
+        type=ParameterType.PARAMETER_STRING, string_value="rig_2"), call_service)
     assert good.successful, good.reason
     assert calib.running(), calib.output
     assert "Traceback" not in calib.output, calib.output

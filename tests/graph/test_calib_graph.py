@@ -33,25 +33,11 @@ FLAT_TOPIC = f"{NS}/{topics.FLAT_FIELD}"
 MAX_DIRECTION_ERROR_DEG = 0.5
 
 
-@pytest.fixture(autouse=True)
-def _own_ros_home(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """calib_node saves its calibration under $ROS_HOME (and loads it at start): give each
-    test its own, so no test sees another's calibration or the user's."""
-    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
-
-
-def _call(node: Node, client, request, spin_until, *, timeout: float = 30.0):
-    assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-    future = client.call_async(request)
-    spin_until(future.done, f"the response of {client.srv_name}", timeout=timeout)
-    return future.result()
-
-
-def _set_scene(node: Node, scene: str, spin_until) -> None:
+def _set_scene(node: Node, scene: str, call_service) -> None:
     client = node.create_client(SetParameters, f"{NS}/driver/set_parameters")
     value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=scene)
-    response = _call(node, client, SetParameters.Request(
-        parameters=[Parameter(name="sim.scene", value=value)]), spin_until)
+    response = call_service(client, SetParameters.Request(
+        parameters=[Parameter(name="sim.scene", value=value)]))
     assert response.results[0].successful, response.results[0].reason
     node.destroy_client(client)
 
@@ -78,13 +64,13 @@ def _start_driver_and_calib(ros_node: Node, start_node):
 
 
 def test_flat_field_and_lights_through_the_driver(
-        ros_node: Node, start_node, spin_until) -> None:
+        ros_node: Node, start_node, spin_until, call_service) -> None:
     driver, calib = _start_driver_and_calib(ros_node, start_node)
     rig = SimulatedRig()  # the driver's rig (default RigConfig): the truth
 
-    _set_scene(ros_node, "white_target", spin_until)
+    _set_scene(ros_node, "white_target", call_service)
     flat_client = ros_node.create_client(CalibrateFlatField, f"{NS}/{topics.CALIBRATE_FLAT_FIELD}")
-    flat = _call(ros_node, flat_client, CalibrateFlatField.Request(), spin_until)
+    flat = call_service(flat_client, CalibrateFlatField.Request())
     assert flat.success, flat.message
     maps = flat.flat_field.maps
     assert len(maps) == rig.led_count
@@ -97,10 +83,10 @@ def test_flat_field_and_lights_through_the_driver(
     assert intensities.shape == (rig.led_count,) and intensities.max() == 1.0
     assert np.all(intensities > 0.5)
 
-    _set_scene(ros_node, "sphere", spin_until)
+    _set_scene(ros_node, "sphere", call_service)
     lights_client = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
-    lights = _call(ros_node, lights_client,
-                   CalibrateLights.Request(sphere_radius=rig.config.sphere_radius_m), spin_until)
+    lights = call_service(lights_client,
+                          CalibrateLights.Request(sphere_radius=rig.config.sphere_radius_m))
     assert lights.success, lights.message
     calibration = lights.calibration
     directions = np.array([[d.x, d.y, d.z] for d in calibration.directions])
@@ -130,17 +116,17 @@ def test_flat_field_and_lights_through_the_driver(
 
 
 def test_refused_light_calibration_keeps_the_one_in_force(
-        ros_node: Node, start_node, spin_until) -> None:
+        ros_node: Node, start_node, spin_until, call_service) -> None:
     _start_driver_and_calib(ros_node, start_node)
     client = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
     request = CalibrateLights.Request(sphere_radius=SimulatedRig().config.sphere_radius_m)
 
-    _set_scene(ros_node, "sphere", spin_until)
-    good = _call(ros_node, client, request, spin_until)
+    _set_scene(ros_node, "sphere", call_service)
+    good = call_service(client, request)
     assert good.success, good.message
 
-    _set_scene(ros_node, "finger", spin_until)  # no sphere in view
-    refused = _call(ros_node, client, request, spin_until)
+    _set_scene(ros_node, "finger", call_service)  # no sphere in view
+    refused = call_service(client, request)
     assert not refused.success
     assert "failed its checks" in refused.message and "silhouette" in refused.message, \
         refused.message
@@ -150,7 +136,7 @@ def test_refused_light_calibration_keeps_the_one_in_force(
 
 
 def test_incomplete_frames_are_refused_naming_the_leds(
-        ros_node: Node, start_node, spin_until) -> None:
+        ros_node: Node, start_node, spin_until, call_service) -> None:
     # No driver: frames in the request are used as they are.
     calib = start_node("fingerps_calib", "calib_node")
     calib.wait_in_graph(ros_node, "calib", NS)
@@ -158,8 +144,8 @@ def test_incomplete_frames_are_refused_naming_the_leds(
     leds = [0, 1, 2, 4, 5, 6]  # LED 3 missing from a 7-LED burst
     frames = [TaggedFrame(burst_id=1, led_index=k, led_count=7, image=image) for k in leds]
     client = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
-    response = _call(ros_node, client,
-                     CalibrateLights.Request(sphere_radius=0.004, frames=frames), spin_until)
+    response = call_service(client,
+                            CalibrateLights.Request(sphere_radius=0.004, frames=frames))
     assert not response.success
     assert "0..6" in response.message and str(leds) in response.message, response.message
     assert calib.running()

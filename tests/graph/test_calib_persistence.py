@@ -12,6 +12,7 @@ the simulated rig at several sphere positions), intrinsics from camera_info_file
 
 from __future__ import annotations
 
+import functools
 import signal
 from pathlib import Path
 
@@ -32,12 +33,6 @@ LIGHTS_TOPIC = f"{NS}/{topics.LIGHT_CALIBRATION}"
 FLAT_TOPIC = f"{NS}/{topics.FLAT_FIELD}"
 PLACES = {"A": (2.0e-3, -1.5e-3, 0.094), "B": (-5.5e-3, 2.0e-3, 0.094),
           "C": (5.0e-3, 2.5e-3, 0.098)}
-
-
-@pytest.fixture(autouse=True)
-def _own_ros_home(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Keep the default calibration_dir ($ROS_HOME/...) out of the user's home."""
-    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
 
 
 def _frames(images: np.ndarray, *, dark: np.ndarray | None = None) -> list[TaggedFrame]:
@@ -76,19 +71,14 @@ def _camera_info_file(path: Path, rig: SimulatedRig) -> Path:
 class _Calib:
     """A calib_node process and the test node's clients of it."""
 
-    def __init__(self, ros_node: Node, start_node, spin_until, *args: str) -> None:
+    def __init__(self, ros_node: Node, start_node, spin_until, call_service, *args: str) -> None:
         self.node, self.spin_until = ros_node, spin_until
+        self.call = functools.partial(call_service, timeout=60.0)  # (client, request)
         self.process = start_node("fingerps_calib", "calib_node", "--ros-args", *args)
         self.process.wait_in_graph(ros_node, "calib", NS)
         self.lights = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
         self.flat = ros_node.create_client(CalibrateFlatField,
                                            f"{NS}/{topics.CALIBRATE_FLAT_FIELD}")
-
-    def call(self, client, request):
-        assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-        future = client.call_async(request)
-        self.spin_until(future.done, f"the response of {client.srv_name}", timeout=60.0)
-        return future.result()
 
     def calibrate_lights(self, images: np.ndarray, *, add: bool = False, radius: float = 0.004):
         return self.call(self.lights, CalibrateLights.Request(
@@ -128,11 +118,11 @@ def _vectors(points) -> np.ndarray:
 
 
 def test_placements_are_combined_saved_and_reloaded(ros_node, start_node, spin_until,
-                                                    tmp_path, rig):
+                                                    call_service, tmp_path, rig):
     directory = tmp_path / "calibration"
     args = ("-p", f"calibration_dir:={directory}",
             "-p", f"camera_info_file:={_camera_info_file(tmp_path / 'cam.yaml', rig)}")
-    calib = _Calib(ros_node, start_node, spin_until, *args)
+    calib = _Calib(ros_node, start_node, spin_until, call_service, *args)
 
     first = calib.calibrate_lights(_sphere("A"))
     assert first.success, first.message
@@ -178,7 +168,7 @@ def test_placements_are_combined_saved_and_reloaded(ros_node, start_node, spin_u
                                flat.flat_field.relative_intensities)
     calib.stop()
 
-    restarted = _Calib(ros_node, start_node, spin_until, *args)
+    restarted = _Calib(ros_node, start_node, spin_until, call_service, *args)
     assert restarted.in_force(LightCalibration, LIGHTS_TOPIC) == lights_before
     flat_after = restarted.in_force(FlatField, FLAT_TOPIC)
     assert flat_after.header == flat_before.header
@@ -194,12 +184,13 @@ def test_placements_are_combined_saved_and_reloaded(ros_node, start_node, spin_u
 
 
 def test_bad_input_is_refused_and_the_calibration_stays(ros_node, start_node, spin_until,
-                                                        tmp_path, rig):
+                                                        call_service, tmp_path, rig):
     directory = tmp_path / "calibration"
     directory.mkdir()
     # A damaged light calibration and a flat field of another camera: neither is loaded.
     (directory / "lights.yaml").write_text("format: fingerps_light_calibration/1\nleds: [\n")
-    calib = _Calib(ros_node, start_node, spin_until, "-p", f"calibration_dir:={directory}",
+    calib = _Calib(ros_node, start_node, spin_until, call_service,
+                   "-p", f"calibration_dir:={directory}",
                    "-p", f"camera_info_file:={_camera_info_file(tmp_path / 'c.yaml', rig)}",
                    "-p", "camera_name:=kiosk_1")
     assert calib.in_force(LightCalibration, LIGHTS_TOPIC, timeout=1.0) is None
@@ -252,14 +243,16 @@ def test_bad_input_is_refused_and_the_calibration_stays(ros_node, start_node, sp
 
 
 def test_a_flat_field_of_another_camera_is_not_loaded(ros_node, start_node, spin_until,
-                                                      tmp_path, rig):
+                                                      call_service, tmp_path, rig):
     directory = tmp_path / "calibration"
-    first = _Calib(ros_node, start_node, spin_until, "-p", f"calibration_dir:={directory}",
+    first = _Calib(ros_node, start_node, spin_until, call_service,
+                   "-p", f"calibration_dir:={directory}",
                    "-p", "camera_name:=camera_a")
     flat = first.calibrate_flat(_render(rig, Scene.WHITE_TARGET, 100))
     assert flat.success, flat.message
     first.stop()
-    second = _Calib(ros_node, start_node, spin_until, "-p", f"calibration_dir:={directory}",
+    second = _Calib(ros_node, start_node, spin_until, call_service,
+                    "-p", f"calibration_dir:={directory}",
                     "-p", "camera_name:=camera_b")
     assert second.in_force(FlatField, FLAT_TOPIC, timeout=1.0) is None
     assert "is for camera 'camera_a'" in second.process.output

@@ -25,16 +25,9 @@ NS = "/" + topics.NAMESPACE
 SERVICE = f"{NS}/driver/set_camera_info"  # camera_info_manager's ~/set_camera_info
 
 
-def _call(client, request, spin_until):
-    assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-    future = client.call_async(request)
-    spin_until(future.done, f"the response of {client.srv_name}", timeout=30.0)
-    return future.result()
-
-
-def _burst_info(ros_node: Node, spin_until) -> CameraInfo:
+def _burst_info(ros_node: Node, call_service) -> CameraInfo:
     client = ros_node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
-    response = _call(client, CaptureBurst.Request(), spin_until)
+    response = call_service(client, CaptureBurst.Request())
     ros_node.destroy_client(client)
     assert response.success, response.message
     return response.burst.camera_info
@@ -50,7 +43,7 @@ def _calibration(width: int, height: int, fx: float) -> CameraInfo:
 
 
 def test_set_camera_info_is_stored_published_at_once_and_loaded_after_a_restart(
-        ros_node: Node, start_node, spin_until) -> None:
+        ros_node: Node, start_node, spin_until, call_service) -> None:
     rig = SimulatedRig(RigConfig())
     width, height = rig.config.width, rig.config.height
     store = Path(os.environ["ROS_HOME"]) / "camera_info" / "fingerps_sim.yaml"
@@ -58,7 +51,7 @@ def test_set_camera_info_is_stored_published_at_once_and_loaded_after_a_restart(
     driver.wait_in_graph(ros_node, "driver", NS)
     # No calibration yet: the default URL is looked at, the sim rig's truth published.
     assert not store.exists()
-    before = _burst_info(ros_node, spin_until)
+    before = _burst_info(ros_node, call_service)
     np.testing.assert_allclose(np.reshape(before.k, (3, 3)), rig.camera_matrix)
     assert f"no camera calibration at {store}" in driver.output
 
@@ -77,14 +70,14 @@ def test_set_camera_info_is_stored_published_at_once_and_loaded_after_a_restart(
     unknown_model.distortion_model = "kannala_brandt_x"
     for bad, reason in ((wrong_size, f"the camera delivers {width}x{height}"),
                         (not_finite, "non-finite"), (unknown_model, "is not one of")):
-        response = _call(client, SetCameraInfo.Request(camera_info=bad), spin_until)
+        response = call_service(client, SetCameraInfo.Request(camera_info=bad))
         assert not response.success and reason in response.status_message, \
             response.status_message
     assert not store.exists()
 
     # Accepted: stored owner-only at the URL's file, and a CameraInfo published at once.
     sent = _calibration(width, height, 1234.5)
-    response = _call(client, SetCameraInfo.Request(camera_info=sent), spin_until)
+    response = call_service(client, SetCameraInfo.Request(camera_info=sent))
     assert response.success, response.status_message
     assert response.status_message == f"stored in {store}"
     assert stat.S_IMODE(store.stat().st_mode) == 0o600
@@ -95,7 +88,7 @@ def test_set_camera_info_is_stored_published_at_once_and_loaded_after_a_restart(
     published = next(i for i in infos if i.k[0] == 1234.5)
     assert list(published.d) == list(sent.d) and list(published.p) == list(sent.p)
     assert published.header.frame_id == "fingerps_camera_optical_frame"
-    assert list(_burst_info(ros_node, spin_until).k) == list(sent.k)
+    assert list(_burst_info(ros_node, call_service).k) == list(sent.k)
 
     # A restarted driver loads it from the same URL.
     driver.stop()
@@ -103,19 +96,19 @@ def test_set_camera_info_is_stored_published_at_once_and_loaded_after_a_restart(
                "the driver gone")
     again = start_node("fingerps_driver", "driver_node")
     again.wait_in_graph(ros_node, "driver", NS)
-    after = _burst_info(ros_node, spin_until)
+    after = _burst_info(ros_node, call_service)
     assert list(after.k) == list(sent.k) and list(after.d) == list(sent.d)
     assert after.distortion_model == "plumb_bob"
     assert f"camera calibration: {store}" in again.output
 
 
 def test_an_explicit_url_that_is_missing_or_of_another_size_says_what_to_run(
-        ros_node: Node, start_node, spin_until, tmp_path: Path) -> None:
+        ros_node: Node, start_node, spin_until, call_service, tmp_path: Path) -> None:
     url = f"file://{tmp_path}/cal/${{NAME}}.yaml"
     driver = start_node("fingerps_driver", "driver_node", "--ros-args",
                         "-p", f"camera_info_url:={url}", "-p", "camera_name:=kiosk_cam")
     driver.wait_in_graph(ros_node, "driver", NS)
-    _burst_info(ros_node, spin_until)  # it runs: set_camera_info can still calibrate it
+    _burst_info(ros_node, call_service)  # it runs: set_camera_info can still calibrate it
     lines = [line for line in driver.output.splitlines()
              if f"no camera calibration at {tmp_path}/cal/kiosk_cam.yaml" in line]
     assert len(lines) == 1, driver.output
@@ -125,8 +118,8 @@ def test_an_explicit_url_that_is_missing_or_of_another_size_says_what_to_run(
     # set_camera_info makes the folder and the file the URL names
     rig = SimulatedRig(RigConfig())
     client = ros_node.create_client(SetCameraInfo, SERVICE)
-    response = _call(client, SetCameraInfo.Request(
-        camera_info=_calibration(rig.config.width, rig.config.height, 800.0)), spin_until)
+    response = call_service(client, SetCameraInfo.Request(
+        camera_info=_calibration(rig.config.width, rig.config.height, 800.0)))
     assert response.success and (tmp_path / "cal" / "kiosk_cam.yaml").exists()
     driver.stop()
 
@@ -137,7 +130,7 @@ def test_an_explicit_url_that_is_missing_or_of_another_size_says_what_to_run(
     again = start_node("fingerps_driver", "driver_node", "--ros-args",
                        "-p", f"camera_info_url:={url}", "-p", "camera_name:=kiosk_cam")
     again.wait_in_graph(ros_node, "driver", NS)
-    info = _burst_info(ros_node, spin_until)
+    info = _burst_info(ros_node, call_service)
     np.testing.assert_allclose(np.reshape(info.k, (3, 3)), rig.camera_matrix)
     lines = [line for line in again.output.splitlines() if "is for 320x240 images" in line]
     assert len(lines) == 1 and (f"delivers {rig.config.width}x{rig.config.height}"

@@ -20,15 +20,8 @@ from fingerps_ros.image_conversion import image_to_array
 NS = "/" + topics.NAMESPACE
 
 
-def _call(client, request, spin_until, timeout: float = 60.0):
-    assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-    future = client.call_async(request)
-    spin_until(future.done, f"the response of {client.srv_name}", timeout=timeout)
-    return future.result()
-
-
-def _first_frame(client, spin_until) -> np.ndarray:
-    response = _call(client, CaptureBurst.Request(response_only=True), spin_until)
+def _first_frame(client, call_service) -> np.ndarray:
+    response = call_service(client, CaptureBurst.Request(response_only=True), timeout=60.0)
     assert response.success, response.message
     return image_to_array(response.burst.frames[0].image).astype(np.float64)
 
@@ -44,7 +37,7 @@ def _ridges(image: np.ndarray) -> np.ndarray:
 
 
 def test_the_driver_shows_the_fingerprint_it_is_given_and_takes_a_new_pose(
-        ros_node: Node, start_node, spin_until) -> None:
+        ros_node: Node, start_node, call_service) -> None:
     driver = start_node("fingerps_driver", "driver_node", "--ros-args",
                         "-p", "sim.finger_identity:=3")
     driver.wait_in_graph(ros_node, "driver", NS, timeout=60.0)
@@ -55,20 +48,20 @@ def test_the_driver_shows_the_fingerprint_it_is_given_and_takes_a_new_pose(
         request = SetParameters.Request(parameters=[ParameterMsg(
             name="sim.finger_roll_deg",
             value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))])
-        return _call(set_params, request, spin_until).results[0]
+        return call_service(set_params, request, timeout=60.0).results[0]
 
     def ridge_match(frame: np.ndarray, config: RigConfig) -> float:
         reference = SimulatedRig(config).noiseless(Scene.FINGER, [0])
         return _correlation(_ridges(frame), _ridges(reference.astype(np.float64)))
 
-    frame = _first_frame(capture, spin_until)
+    frame = _first_frame(capture, call_service)
     assert ridge_match(frame, RigConfig(finger_identity=3)) > 0.5
     assert ridge_match(frame, RigConfig()) < 0.2  # not the spiral
 
     refused = set_roll(60.0)
     assert not refused.successful and "45" in refused.reason, refused.reason
     assert set_roll(8.0).successful
-    frame = _first_frame(capture, spin_until)
+    frame = _first_frame(capture, call_service)
     assert ridge_match(frame, RigConfig(finger_identity=3, finger_roll_deg=8.0)) > 0.5
     assert ridge_match(frame, RigConfig(finger_identity=3)) < 0.3
 
