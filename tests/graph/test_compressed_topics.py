@@ -13,6 +13,7 @@ companion is encoded only while subscribed, and a failure is counted, never rais
 
 from __future__ import annotations
 
+import functools
 import struct
 import time
 from collections import defaultdict
@@ -57,14 +58,9 @@ def _double_array(values) -> ParameterValue:
 class _Calls:
     """Service calls and parameter changes of the test node, spun until answered."""
 
-    def __init__(self, node: Node, spin_until) -> None:
-        self.node, self.spin_until = node, spin_until
-
-    def call(self, client, request, what: str, timeout: float = 60.0):
-        assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-        future = client.call_async(request)
-        self.spin_until(future.done, what, timeout=timeout)
-        return future.result()
+    def __init__(self, node: Node, call_service) -> None:
+        self.node = node
+        self.call = functools.partial(call_service, timeout=60.0)  # (client, request, what)
 
     def set_params(self, node_name: str, **values: ParameterValue) -> None:
         client = self.node.create_client(SetParameters, f"{NS}/{node_name}/set_parameters")
@@ -107,7 +103,7 @@ def _depth_from_compressed_depth(message: CompressedImage) -> tuple[np.ndarray, 
 
 
 def test_recon_companions_equal_the_raw_outputs(ros_node: Node, start_node, spin_until,
-                                                tmp_path) -> None:
+                                                call_service, tmp_path) -> None:
     raw: dict[str, dict] = defaultdict(dict)
     packed: dict[str, dict] = defaultdict(dict)
     companions = {topics.NORMAL_MAP: "compressed", topics.FINGERPRINT: "compressed",
@@ -130,7 +126,7 @@ def test_recon_companions_equal_the_raw_outputs(ros_node: Node, start_node, spin
     spin_until(lambda: all(s.get_publisher_count() >= 1 for s in subscriptions),
                "recon's compressed publishers")
 
-    calls = _Calls(ros_node, spin_until)
+    calls = _Calls(ros_node, call_service)
     lights = ros_node.create_client(CalibrateLights, f"{NS}/calibrate_lights")
     for i, center in enumerate(SPHERE_PLACEMENTS):
         calls.set_params("driver", sim__sphere_center=_double_array(center))
@@ -274,7 +270,8 @@ IMAGE_RAW_ON = ("image_raw.enable_pub_plugins:="
 
 @pytest.mark.parametrize(("bit_depth", "encoding"), [(8, "mono8"), (12, "mono16")])
 def test_driver_image_raw_companion_is_exact(ros_node: Node, start_node, spin_until,
-                                             bit_depth: int, encoding: str) -> None:
+                                             call_service, bit_depth: int,
+                                             encoding: str) -> None:
     """Needs driver_node wired with CompressedTopics for image_raw (skipped until it is)."""
     raw: dict[tuple[int, int], Image] = {}
     packed: dict[tuple[int, int], CompressedImage] = {}
@@ -294,7 +291,7 @@ def test_driver_image_raw_companion_is_exact(ros_node: Node, start_node, spin_un
         raise
     spin_until(lambda: compressed_sub.get_publisher_count() >= 1,
                "the driver's image_raw/compressed publisher")
-    _Calls(ros_node, spin_until).capture()
+    _Calls(ros_node, call_service).capture()
     deadline = time.monotonic() + 10.0
 
     def matched() -> list[tuple[int, int]]:

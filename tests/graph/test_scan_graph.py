@@ -5,6 +5,7 @@ LEDs off (on a board_emulator process), impossible and concurrent goals are reje
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -54,9 +55,10 @@ def _value(value: object) -> ParameterValue:
 class _Graph:
     """The processes and the test's clients."""
 
-    def __init__(self, ros_node: Node, start_node, spin_until, tmp_path: Path,
+    def __init__(self, ros_node: Node, start_node, spin_until, call_service, tmp_path: Path,
                  calibration_dir: Path) -> None:
         self.node, self.start_node, self.spin_until = ros_node, start_node, spin_until
+        self.call = functools.partial(call_service, timeout=60.0)  # (client, request, what)
         self.tmp_path, self.calibration_dir = tmp_path, calibration_dir
         self.scan = ActionClient(ros_node, Scan, f"{NS}/scan")
         self.set_driver = ros_node.create_client(SetParameters, f"{NS}/driver/set_parameters")
@@ -86,12 +88,6 @@ class _Graph:
         scan.wait_in_graph(self.node, "scan", NS)
         assert self.scan.wait_for_server(timeout_sec=20.0)
         self.calibrate()
-
-    def call(self, client, request, what: str, timeout: float = 60.0):
-        assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} not available"
-        future = client.call_async(request)
-        self.spin_until(future.done, what, timeout=timeout)
-        return future.result()
 
     def set_param(self, name: str, value: object) -> None:
         request = SetParameters.Request(parameters=[ParameterMsg(name=name,
@@ -135,8 +131,8 @@ class _Graph:
 
 
 @pytest.fixture
-def graph(ros_node, start_node, spin_until, tmp_path, calibration_dir) -> _Graph:
-    return _Graph(ros_node, start_node, spin_until, tmp_path, calibration_dir)
+def graph(ros_node, start_node, spin_until, call_service, tmp_path, calibration_dir) -> _Graph:
+    return _Graph(ros_node, start_node, spin_until, call_service, tmp_path, calibration_dir)
 
 
 def test_scan_with_a_finger_meets_the_accuracy_and_bad_goals_are_rejected(graph) -> None:

@@ -42,11 +42,6 @@ CHUNK_BYTES = 512 * 1024 * 1024
 RECORDED_BURSTS = 30  # at 10/s: 3 s of bursts in the recorder's open chunk
 
 
-@pytest.fixture(autouse=True)
-def _own_ros_home(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
-
-
 def _args(paths: tuple[str, ...], tmp_path: Path) -> list[str]:
     args = ["--ros-args"]
     for name in paths:
@@ -123,13 +118,7 @@ def test_signals_repeated_while_stopping_are_ignored_until_resources_are_closed(
         kind: str, ros_node: Node, start_node, spin_until, tmp_path: Path) -> None:
     """SIGINT, then SIGTERM and SIGINT in turn every 10 ms until the node has exited."""
     proc = _graph(ros_node, start_node, spin_until, tmp_path)[kind]
-    proc.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + 60.0
-    sent = 1
-    while proc.running() and time.monotonic() < deadline:
-        proc.send_signal(signal.SIGTERM if sent % 2 else signal.SIGINT)
-        sent += 1
-        time.sleep(0.01)
+    sent = proc.signal_until_exit(timeout=60.0)
     _assert_clean_exit(proc, proc.wait(timeout=10.0))
     assert sent > 2
     if kind == "recorder":
