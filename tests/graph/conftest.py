@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import subprocess
@@ -75,6 +76,12 @@ def node_in_graph(graph_node: Node, name: str, namespace: str = "/") -> bool:
     return (name, namespace) in graph_node.get_node_names_and_namespaces()
 
 
+def _die_with_the_test() -> None:
+    """In a started node, before it runs: SIGKILL it if the test process dies (prctl
+    PR_SET_PDEATHSIG), so a pytest killed mid-test (a timeout) leaves no graph running."""
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+
+
 class NodeProcess:
     """A node executable running in a subprocess; output goes to ``log_path``."""
 
@@ -84,7 +91,7 @@ class NodeProcess:
         self._log = open(log_path, "wb")  # closed by stop()
         self.process = subprocess.Popen(
             command, stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT,
-            env=env, cwd=REPO, start_new_session=True)
+            env=env, cwd=REPO, start_new_session=True, preexec_fn=_die_with_the_test)
 
     @property
     def pid(self) -> int:
