@@ -35,7 +35,12 @@ from fingerps_msgs.srv import CaptureBurst
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.normal_map import normal_map_rgb
-from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
+from fingerps_recon.photometric.pipeline import (
+    Model,
+    Projection,
+    ReconstructionOptions,
+    full_scale_of,
+)
 from fingerps_recon.reconstruction.burst_reconstruction import (
     BurstReconstruction,
     PreparedCalibrations,
@@ -63,7 +68,6 @@ from fingerps_ros.point_cloud_conversion import points_to_cloud
 
 SCAN = "scan"                       # fingerps_msgs/action/Scan
 SCAN_REJECTIONS = "scan/rejections"  # std_msgs/String: why a goal was rejected
-_FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
 
 
 class ScanNode(Node):
@@ -231,8 +235,8 @@ class ScanNode(Node):
         return ScanBurst(
             burst.burst_id, image_to_array(burst.frames[0].image) if burst.frames else None,
             image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None,
-            float(self._value("mono16_full_scale")) if encoding == "mono16"
-            else _FULL_SCALE.get(encoding, 255.0),
+            full_scale_of(encoding,
+                          mono16_full_scale=float(self._value("mono16_full_scale"))),
             repeated=image_to_array(repeated.image) if has_repeat and repeated else None,
             repeat=image_to_array(burst.repeat_frame.image) if has_repeat else None,
             repeat_led=led, source=burst)

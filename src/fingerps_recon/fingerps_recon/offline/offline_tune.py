@@ -54,7 +54,12 @@ from fingerps_recon.offline.parameter_sweep import (
 )
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.normal_map import normal_map_rgb
-from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
+from fingerps_recon.photometric.pipeline import (
+    Model,
+    Projection,
+    ReconstructionOptions,
+    full_scale_of,
+)
 from fingerps_recon.surface.ply import write_ply
 from fingerps_ros.command_line import CommandLineTool
 from fingerps_ros.errors import FingerpsError
@@ -64,7 +69,6 @@ TOOL = CommandLineTool(_PROG, bad_input=(FingerpsError,), failed=(OSError,))
 BURST_TYPE = "fingerps_msgs/msg/Burst"
 LIGHTS_TYPE = "fingerps_msgs/msg/LightCalibration"
 FLAT_TYPE = "fingerps_msgs/msg/FlatField"
-_FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
 TILE_HEIGHT = 200
 LABEL_HEIGHT = 22
 
@@ -157,7 +161,7 @@ def bursts_from_bag(path: Path, *, calibration: Path | None,
                   f"{[f.led_index for f in frames]}, calibration has {count}", file=sys.stderr)
             continue
         images = np.stack([image_to_array(f.image) for f in frames])
-        full = _FULL_SCALE.get(frames[0].image.encoding, 255.0)
+        full = full_scale_of(frames[0].image.encoding)
         bursts.append(BurstInput(
             name=f"burst_{burst.burst_id:04d}", images=images,
             lights_ps=optical_to_ps(directions),

@@ -68,6 +68,17 @@ class Projection(Enum):
     ORTHOGRAPHIC = "orthographic"   # pixel size = working distance / fx
 
 
+
+FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
+"""Largest grey level of each image encoding a burst may have (mono16: 12-bit sensors, the
+default of the nodes' ``mono16_full_scale``)."""
+
+
+def full_scale_of(encoding: str, *, mono16_full_scale: float = 4095.0) -> float:
+    """The ``full_scale`` to reconstruct images of ``encoding`` with: ``mono16_full_scale``
+    for mono16, else the encoding's `FULL_SCALE` (255 for an encoding not listed)."""
+    return mono16_full_scale if encoding == "mono16" else FULL_SCALE.get(encoding, 255.0)
+
 @dataclass(frozen=True)
 class ReconstructionOptions:
     """Options of :func:`reconstruct`; defaults are the simulated rig's."""

@@ -17,12 +17,13 @@ from sensor_msgs.msg import Image
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.frames import optical_to_ps
-from fingerps_recon.photometric.pipeline import check_calibration, check_portions
+from fingerps_recon.photometric.pipeline import (
+    FULL_SCALE,
+    check_calibration,
+    check_portions,
+    full_scale_of,
+)
 from fingerps_ros.image_conversion import image_to_array, images_to_array
-
-FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
-"""Largest grey level of each encoding a burst may have (mono16: the default of
-recon_node's ``mono16_full_scale``)."""
 
 
 class IncompleteBurstError(FingerpsReconError):
@@ -72,7 +73,7 @@ def burst_inputs(burst: Burst, led_count: int, *, mono16_full_scale: float = 409
     another encoding or size, or a camera_info without intrinsics."""
     check_burst_size(burst, limits or BurstLimits())
     images, encoding = burst_images(burst, led_count)
-    full_scale = mono16_full_scale if encoding == "mono16" else FULL_SCALE[encoding]
+    full_scale = full_scale_of(encoding, mono16_full_scale=mono16_full_scale)
     dark = None
     if burst.has_dark_frame:
         image = burst.dark_frame.image
