@@ -54,7 +54,12 @@ def test_recorder_writes_a_valid_bag_and_stops_cleanly(
         "graph_session", lights=LightCalibration(camera_name="graph_test", sphere_radius=0.005),
         flush_period=0.1)
 
-    subscribed = dict(ros_node.get_subscriber_names_and_types_by_node("recorder", NAMESPACE))
+    # The burst publisher has matched the recorder's subscription; the graph cache that
+    # lists a node's subscriptions learns of them separately (ros_discovery_info), later.
+    def recorder_subscriptions() -> dict[str, list[str]]:
+        return dict(ros_node.get_subscriber_names_and_types_by_node("recorder", NAMESPACE))
+    wait_for(lambda: BURST_TOPIC in recorder_subscriptions(), "the recorder's subscriptions")
+    subscribed = recorder_subscriptions()
     assert subscribed[BURST_TOPIC] == ["fingerps_msgs/msg/Burst"]
     assert f"{NAMESPACE}/{topics.POINTS}" not in subscribed  # record_outputs:=false
 
