@@ -74,7 +74,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fingerps_driver.demo import DemoError, call_service, executable
+from fingerps_driver.demo import call_service, executable
+from fingerps_driver.errors import DemoError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from figures_report import exit_codes, print_figures

@@ -81,6 +81,7 @@ from figures_report import print_figures
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_driver.simulation.fingerprint_pattern import FingerprintPattern
+from fingerps_recon.errors import RolledPrintError
 from fingerps_recon.photometric.pipeline import (
     Model,
     PreparedCalibration,
@@ -88,7 +89,7 @@ from fingerps_recon.photometric.pipeline import (
     prepare_calibration,
     reconstruct_prepared,
 )
-from fingerps_recon.surface.rolled_print import RolledPrint, RolledPrintError, rolled_print
+from fingerps_recon.surface.rolled_print import RolledPrint, rolled_print
 
 IDENTITIES = 20
 CAPTURES = 3

@@ -57,7 +57,8 @@ import numpy as np
 import yaml
 
 from fingerps_driver.bringup import GRAPH, default_params_file
-from fingerps_driver.demo import DemoError, executable, stop_graph
+from fingerps_driver.demo import executable, stop_graph
+from fingerps_driver.errors import DemoError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_e2e

@@ -9,8 +9,8 @@ from mcap.reader import make_reader
 from rclpy.serialization import serialize_message
 
 from fingerps_msgs.msg import Burst, LightCalibration
-from fingerps_recon.sessions.bag_reader import BagSchemaError, SessionBagReader
-from fingerps_recon.sessions.mcap_records import McapDamageError
+from fingerps_recon.errors import BagSchemaError, McapDamageError
+from fingerps_recon.sessions.bag_reader import SessionBagReader
 from fingerps_recon.sessions.message_definition import MessageDefinition, load_message_definition
 from fingerps_recon.sessions.session_bag import SessionBagWriter
 

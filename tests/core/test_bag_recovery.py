@@ -22,9 +22,10 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
+from fingerps_recon.errors import BagRecoveryError, McapDamageError
 from fingerps_recon.sessions.bag_recover import main as bag_recover_main
-from fingerps_recon.sessions.bag_recovery import BagRecoveryError, recover_bag
-from fingerps_recon.sessions.mcap_records import McapDamageError, scan_records
+from fingerps_recon.sessions.bag_recovery import recover_bag
+from fingerps_recon.sessions.mcap_records import scan_records
 from fingerps_recon.sessions.session_bag import SessionBagWriter
 
 T0 = 1_700_000_000_000_000_000

@@ -18,15 +18,11 @@ from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
 from std_msgs.msg import String
 
+from fingerps_recon.errors import BagRecoveryError, SessionBagError
 from fingerps_recon.sessions.bag_reader import SessionBagReader
-from fingerps_recon.sessions.bag_recovery import BagRecoveryError, bag_pieces, recover_bag
+from fingerps_recon.sessions.bag_recovery import bag_pieces, recover_bag
 from fingerps_recon.sessions.sequence_gaps import SequenceGaps
-from fingerps_recon.sessions.session_bag import (
-    NS_PER_S,
-    SessionBagError,
-    SessionBagWriter,
-    qos_profiles_yaml,
-)
+from fingerps_recon.sessions.session_bag import NS_PER_S, SessionBagWriter, qos_profiles_yaml
 from fingerps_recon.sessions.session_retention import enforce_limit, stored_sessions
 from fingerps_ros import qos
 

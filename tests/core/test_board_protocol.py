@@ -9,7 +9,6 @@ from fingerps_driver.board.board_protocol import (
     Command,
     ErrorCode,
     LineFramer,
-    ProtocolError,
     Reply,
     Request,
     crc8,
@@ -23,6 +22,7 @@ from fingerps_driver.board.board_protocol import (
     next_seq,
     parse_mask,
 )
+from fingerps_driver.errors import ProtocolError
 
 
 def _line(sigil: bytes, body: str, *, crc: int | None = None) -> bytes:

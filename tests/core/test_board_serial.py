@@ -9,17 +9,17 @@ import time
 
 import pytest
 
-from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorError, Fault
+from fingerps_driver.board.board_emulator import BoardEmulator, Fault
 from fingerps_driver.board.board_protocol import ErrorCode
-from fingerps_driver.board.led_board import (
+from fingerps_driver.board.led_board import BoardInfo, LedBoard
+from fingerps_driver.errors import (
     BoardDisconnectedError,
+    BoardEmulatorError,
     BoardError,
-    BoardInfo,
     BoardNotFoundError,
     BoardProtocolError,
     BoardRejectedError,
     BoardTimeoutError,
-    LedBoard,
 )
 
 TIMEOUT_S = 0.05

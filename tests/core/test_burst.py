@@ -8,8 +8,9 @@ import pytest
 
 from fingerps_driver.board.board_emulator import BoardEmulator, Fault
 from fingerps_driver.board.led_board import LedBoard
-from fingerps_driver.cameras.camera import Camera, CameraError, SimulatedCamera
+from fingerps_driver.cameras.camera import Camera, SimulatedCamera
 from fingerps_driver.capture.burst import DARK_LED, BurstResult, capture_burst
+from fingerps_driver.errors import CameraError
 
 H, W = 6, 8
 LEDS = tuple(range(7))

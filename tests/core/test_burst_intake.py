@@ -10,12 +10,8 @@ import pytest
 from sensor_msgs.msg import CameraInfo
 
 from fingerps_msgs.msg import Burst, TaggedFrame
-from fingerps_recon.reconstruction.burst_intake import (
-    FULL_SCALE,
-    BurstLimits,
-    IncompleteBurstError,
-    burst_inputs,
-)
+from fingerps_recon.errors import IncompleteBurstError
+from fingerps_recon.reconstruction.burst_intake import FULL_SCALE, BurstLimits, burst_inputs
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.image_conversion import array_to_image
 

@@ -9,9 +9,10 @@ import pytest
 
 from fingerps_driver.board.board_emulator import BoardEmulator
 from fingerps_driver.board.led_board import LedBoard
-from fingerps_driver.cameras.camera import Camera, CameraError
+from fingerps_driver.cameras.camera import Camera
 from fingerps_driver.cameras.camera_folder import FolderCamera
 from fingerps_driver.capture.burst import capture_burst
+from fingerps_driver.errors import CameraError
 
 H, W = 6, 8
 

@@ -16,9 +16,10 @@ import pytest
 
 from fingerps_driver.board.board_emulator import BoardEmulator
 from fingerps_driver.board.led_board import LedBoard
-from fingerps_driver.cameras.camera import Camera, CameraError, ExposureControl, to_mono
+from fingerps_driver.cameras.camera import Camera, ExposureControl, to_mono
 from fingerps_driver.cameras.camera_opencv import OpenCvCamera, parse_device
 from fingerps_driver.capture.burst import capture_burst
+from fingerps_driver.errors import CameraError
 
 H, W = 6, 8
 

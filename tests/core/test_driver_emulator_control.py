@@ -14,15 +14,16 @@ import time
 import numpy as np
 import pytest
 
-from fingerps_driver.board.board_emulator import (
-    BoardEmulatorControl,
-    BoardEmulatorError,
-    EmulatorControlServer,
-    Fault,
-)
-from fingerps_driver.board.led_board import BoardDisconnectedError, BoardNotFoundError, LedBoard
-from fingerps_driver.cameras.camera import CameraError, SimulatedCamera
+from fingerps_driver.board.board_emulator import BoardEmulatorControl, EmulatorControlServer, Fault
+from fingerps_driver.board.led_board import LedBoard
+from fingerps_driver.cameras.camera import SimulatedCamera
 from fingerps_driver.capture.burst import capture_burst
+from fingerps_driver.errors import (
+    BoardDisconnectedError,
+    BoardEmulatorError,
+    BoardNotFoundError,
+    CameraError,
+)
 
 LEDS = tuple(range(7))
 pytestmark = pytest.mark.usefixtures("no_emulator_threads_left")

@@ -8,12 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from fingerps_ros.privacy import (
-    PrivacySettingError,
-    apply_private_umask,
-    start_private_tool,
-    use_localhost_discovery,
-)
+from fingerps_ros.errors import PrivacySettingError
+from fingerps_ros.privacy import apply_private_umask, start_private_tool, use_localhost_discovery
 
 
 @pytest.fixture

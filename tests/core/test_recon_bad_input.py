@@ -29,18 +29,17 @@ from std_msgs.msg import Header
 from fingerps_driver.simulation import SimulatedRig
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_recon import recon_node
+from fingerps_recon.errors import EmptyReconstructionError, IncompleteBurstError
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
 from fingerps_recon.reconstruction import worker
 from fingerps_recon.reconstruction.burst_intake import (
     BurstLimits,
-    IncompleteBurstError,
     check_burst_size,
     check_light_calibration,
     flat_field_maps,
 )
 from fingerps_recon.reconstruction.burst_reconstruction import (
-    EmptyReconstructionError,
     PreparedCalibrations,
     reconstruct_burst,
 )

@@ -23,17 +23,18 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from fingerps_driver.simulation import SimulatedRig
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
+from fingerps_recon.errors import IncompleteBurstError, NoFingerError, RolledPrintError
 from fingerps_recon.photometric.frames import ps_to_optical
-from fingerps_recon.photometric.pipeline import Model, NoFingerError, ReconstructionOptions
+from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
 from fingerps_recon.reconstruction import worker as worker_module
-from fingerps_recon.reconstruction.burst_intake import BurstLimits, IncompleteBurstError
+from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.diagnostics import reconstruction_status
 from fingerps_recon.reconstruction.worker import (
     ReconSettings,
     ReconstructionWorker,
     StageTimes,
 )
-from fingerps_recon.surface.rolled_print import PrintRejection, RolledPrintError
+from fingerps_recon.surface.rolled_print import PrintRejection
 from fingerps_ros.image_conversion import array_to_image
 
 SETTINGS = ReconSettings(ReconstructionOptions(model=Model.LAMBERT), BurstLimits(), 4095.0)

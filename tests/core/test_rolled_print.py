@@ -24,7 +24,7 @@ from test_surface_unrolling import APEX_MM, K, cylinder
 
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_driver.simulation.rig import RigConfig
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import FingerpsReconError, RolledPrintError
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.pipeline import Reconstruction, reconstruct
 from fingerps_recon.photometric.pixel_rays import pixel_rays_optical
@@ -32,7 +32,6 @@ from fingerps_recon.surface.rolled_print import (
     PrintRejection,
     RidgeSignal,
     RolledPrint,
-    RolledPrintError,
     RolledPrintOptions,
     rolled_print,
 )

@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from fingerps_recon.errors import ImpossibleGoalError, RolledPrintError, ScanAbortedError
 from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
 from fingerps_recon.scan.scan_sequence import (
     GoalEnd,
-    ScanAbortedError,
     ScanBurst,
     ScanFeedback,
     ScanOutcome,
@@ -29,11 +29,10 @@ from fingerps_recon.scan.scan_settings import (
     GOAL_PARAMETERS,
     MAX_BURSTS,
     SCAN_PARAMETERS,
-    ImpossibleGoalError,
     ScanSettings,
     goal_settings,
 )
-from fingerps_recon.surface.rolled_print import PrintRejection, RolledPrintError
+from fingerps_recon.surface.rolled_print import PrintRejection
 from fingerps_ros.errors import FingerpsError
 
 H = W = 64

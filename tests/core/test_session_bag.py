@@ -26,10 +26,9 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import FingerpsReconError, MessageDefinitionError, SessionBagError
 from fingerps_recon.sessions.message_definition import (
     SEPARATOR,
-    MessageDefinitionError,
     load_message_definition,
     message_definition,
     type_description_hash,
@@ -37,7 +36,6 @@ from fingerps_recon.sessions.message_definition import (
 from fingerps_recon.sessions.session_bag import (
     INT64_MAX,
     QosProfileFields,
-    SessionBagError,
     SessionBagWriter,
     qos_profiles_yaml,
 )

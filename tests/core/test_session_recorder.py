@@ -20,12 +20,9 @@ from mcap.reader import make_reader
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
+from fingerps_recon.errors import RecorderError, SessionBagError
 from fingerps_recon.sessions.bag_reader import SessionBagReader
-from fingerps_recon.sessions.session_bag import (
-    QosProfileFields,
-    SessionBagError,
-    SessionBagWriter,
-)
+from fingerps_recon.sessions.session_bag import QosProfileFields, SessionBagWriter
 from fingerps_recon.sessions.session_metadata import (
     default_session_name,
     parameters_record,
@@ -43,7 +40,6 @@ from fingerps_recon.sessions.session_topics import (
     SESSION_TOPICS,
     TOPIC_TABLE,
     RecordedTopic,
-    RecorderError,
     choose_topics,
     topics_problem,
 )

@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 import scipy.ndimage
 
-from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.surface.surface_unrolling import UnrollingError, unroll_surface
+from fingerps_recon.errors import FingerpsReconError, UnrollingError
+from fingerps_recon.surface.surface_unrolling import unroll_surface
 
 SHAPE = (493, 659)
 K = np.array([[3000.0, 0.0, (SHAPE[1] - 1) / 2], [0.0, 3000.0, (SHAPE[0] - 1) / 2],

@@ -12,7 +12,8 @@ from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
 
 from fingerps_msgs.msg import Burst, LightCalibration
-from fingerps_recon.sessions.mcap_records import McapDamageError, scan_records
+from fingerps_recon.errors import McapDamageError
+from fingerps_recon.sessions.mcap_records import scan_records
 from fingerps_ros import topics
 
 NAMESPACE = "/" + topics.NAMESPACE

@@ -37,6 +37,7 @@ from pathlib import Path
 import yaml
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
+from fingerps_driver.errors import BringupError
 from fingerps_ros.command_line import EXIT_BAD_INPUT, CommandLineTool
 from fingerps_ros.privacy import use_localhost_discovery
 
@@ -59,10 +60,6 @@ GRAPH = (
     GraphNode("recorder", "fingerps_recon", "recorder_node"),
     GraphNode("scan", "fingerps_recon", "scan_node"),
 )
-
-
-class BringupError(Exception):
-    """Bringup cannot start; the message names the problem and what to do."""
 
 
 TOOL = CommandLineTool("bringup", bad_input=(BringupError,), error_prefix="[bringup] error: ")

@@ -31,6 +31,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 
+from fingerps_driver.errors import DemoError
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
 from fingerps_recon.photometric.angular_error import angular_error_deg, summarize_angular_error
@@ -53,10 +54,6 @@ GRAPH = (
     ("fingerps_recon", "recon_node"),
     ("fingerps_recon", "recorder_node"),
 )
-
-
-class DemoError(Exception):
-    """The demo could not complete; the message says which step and what to do."""
 
 
 def executable(package: str, name: str) -> str:

@@ -22,8 +22,7 @@ from fingerps_driver.board.board_connection import (
     BoardState,
     StartTimer,
 )
-from fingerps_driver.board.led_board import BoardRejectedError
-from fingerps_driver.cameras.camera import Camera, CameraError
+from fingerps_driver.cameras.camera import Camera
 from fingerps_driver.cameras.camera_info_manager import CameraInfoManager
 from fingerps_driver.cameras.camera_opencv import OpenCvCamera
 from fingerps_driver.cameras.camera_setup import (
@@ -35,7 +34,7 @@ from fingerps_driver.cameras.camera_setup import (
 from fingerps_driver.capture.burst import BurstResult, capture_burst
 from fingerps_driver.capture.burst_plan import BurstPlan
 from fingerps_driver.capture.capture_rate import CaptureRate
-from fingerps_driver.errors import FingerpsDriverError
+from fingerps_driver.errors import BoardRejectedError, CameraError, FingerpsDriverError
 from fingerps_driver.simulation import Scene
 from fingerps_ros.log import Log
 

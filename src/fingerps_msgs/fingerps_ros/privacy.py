@@ -16,13 +16,11 @@ from __future__ import annotations
 
 import os
 
+from fingerps_ros.errors import PrivacySettingError
+
 UMASK_VARIABLE = "FINGERPS_UMASK"
 DEFAULT_UMASK = 0o077
 DISCOVERY_VARIABLE = "ROS_AUTOMATIC_DISCOVERY_RANGE"
-
-
-class PrivacySettingError(ValueError):
-    """FINGERPS_UMASK holds something that is not an octal umask."""
 
 
 def apply_private_umask() -> int | None:

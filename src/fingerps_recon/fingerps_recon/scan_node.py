@@ -32,7 +32,7 @@ from std_msgs.msg import Header, String
 from fingerps_msgs.action import Scan
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_msgs.srv import CaptureBurst
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import FingerpsReconError, ScanAbortedError
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import (
@@ -48,7 +48,6 @@ from fingerps_recon.reconstruction.burst_reconstruction import (
 )
 from fingerps_recon.scan.scan_sequence import (
     GoalEnd,
-    ScanAbortedError,
     ScanBurst,
     ScanOutcome,
     ScanSequence,

@@ -21,8 +21,8 @@ from enum import Enum
 from fingerps_driver.board.backoff import Backoff
 from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorControl
 from fingerps_driver.board.board_protocol import mask_to_indices
-from fingerps_driver.board.led_board import BoardError, LedBoard
-from fingerps_driver.errors import FingerpsDriverError
+from fingerps_driver.board.led_board import LedBoard
+from fingerps_driver.errors import BoardError, FingerpsDriverError, WrongBoardError
 from fingerps_ros.log import Log
 
 SIM_PORT = "sim"
@@ -38,10 +38,6 @@ class BoardState(Enum):
     CONNECTED = "connected"
     DISCONNECTED = "disconnected"  # lost while running; reconnecting
     WAITING = "waiting"  # not there at start (wait_for_port); retrying
-
-
-class WrongBoardError(BoardError):
-    """The board answers but does not fit the configuration (too few LEDs)."""
 
 
 @dataclass(frozen=True)

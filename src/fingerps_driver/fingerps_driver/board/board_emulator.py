@@ -44,7 +44,6 @@ from fingerps_driver.board.board_protocol import (
     REQUEST_SIGIL,
     Command,
     ErrorCode,
-    ProtocolError,
     Reply,
     Request,
     decode_request,
@@ -53,14 +52,10 @@ from fingerps_driver.board.board_protocol import (
     mask_to_indices,
 )
 from fingerps_driver.board.frame_reader import POLL_S, FrameReader
-from fingerps_driver.errors import FingerpsDriverError
+from fingerps_driver.errors import BoardEmulatorError, FingerpsDriverError, ProtocolError
 
 DEFAULT_LINK_PATH = "/tmp/fingerps_board"
 FIRMWARE = "fingerps-emu-1.0"
-
-
-class BoardEmulatorError(FingerpsDriverError):
-    """The emulator cannot do what was asked (see the message)."""
 
 
 # Replies a fault queue may cover (faults plus the replies let through before them).

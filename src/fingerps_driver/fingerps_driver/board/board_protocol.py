@@ -69,7 +69,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import TypeVar
 
-from fingerps_driver.errors import FingerpsDriverError
+from fingerps_driver.errors import ProtocolError
 
 REQUEST_SIGIL = b"#"
 REPLY_SIGIL = b"!"
@@ -111,23 +111,6 @@ class ErrorCode(Enum):
     def retryable(self) -> bool:
         """True if the error means the request was garbled in transit (resend it)."""
         return self in (ErrorCode.BAD_CHECKSUM, ErrorCode.BAD_FRAME)
-
-
-class ProtocolError(FingerpsDriverError):
-    """A line that is not a valid protocol message.
-
-    Attributes
-    ----------
-    code : ErrorCode
-        What is wrong, as the board would report it.
-    seq : int or None
-        The sequence number read from the line, if it could be read at all.
-    """
-
-    def __init__(self, code: ErrorCode, message: str, *, seq: int | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-        self.seq = seq
 
 
 def crc8(data: bytes) -> int:

@@ -20,8 +20,6 @@ from fingerps_driver.board.board_protocol import (
     MAX_LEVEL,
     REPLY_SIGIL,
     Command,
-    ErrorCode,
-    ProtocolError,
     Reply,
     Request,
     decode_reply,
@@ -33,41 +31,15 @@ from fingerps_driver.board.board_protocol import (
 )
 from fingerps_driver.board.frame_reader import FrameReader
 from fingerps_driver.capture.device import Device
-from fingerps_driver.errors import FingerpsDriverError
-
-
-class BoardError(FingerpsDriverError):
-    """Root of the LED-board client errors."""
-
-
-class BoardNotFoundError(BoardError):
-    """The serial port does not exist."""
-
-
-class BoardDisconnectedError(BoardError):
-    """The port vanished or failed while in use (cable pulled, board reset)."""
-
-
-class BoardTimeoutError(BoardError):
-    """No valid reply within the timeout, on every attempt."""
-
-
-class BoardProtocolError(BoardError):
-    """Replies were garbled on every attempt, or a reply made no sense."""
-
-
-class BoardRejectedError(BoardError):
-    """The board answered ERR (unknown command, bad argument, LED out of range).
-
-    Attributes
-    ----------
-    code : ErrorCode
-        The board's error code.
-    """
-
-    def __init__(self, message: str, code: ErrorCode) -> None:
-        super().__init__(message)
-        self.code = code
+from fingerps_driver.errors import (
+    BoardDisconnectedError,
+    BoardError,
+    BoardNotFoundError,
+    BoardProtocolError,
+    BoardRejectedError,
+    BoardTimeoutError,
+    ProtocolError,
+)
 
 
 @dataclass(frozen=True)

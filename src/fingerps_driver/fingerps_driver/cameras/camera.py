@@ -24,14 +24,10 @@ import cv2
 import numpy as np
 
 from fingerps_driver.capture.device import Device
-from fingerps_driver.errors import FingerpsDriverError
+from fingerps_driver.errors import CameraError, FingerpsDriverError
 
 ENCODING_DTYPES = {"mono8": np.dtype(np.uint8), "mono16": np.dtype(np.uint16)}
 """Supported image encodings (sensor_msgs/Image names) and their dtypes."""
-
-
-class CameraError(FingerpsDriverError):
-    """The camera delivered no frame, or a frame of the wrong size or type."""
 
 
 @runtime_checkable

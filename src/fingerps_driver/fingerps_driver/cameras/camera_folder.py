@@ -24,12 +24,11 @@ import numpy as np
 from fingerps_driver.cameras.camera import (
     ENCODING_DTYPES,
     Camera,
-    CameraError,
     check_encoding,
     check_requested_size,
     to_mono,
 )
-from fingerps_driver.errors import FingerpsDriverError
+from fingerps_driver.errors import CameraError, FingerpsDriverError
 
 LIST_FILE = "filenames.txt"
 

@@ -30,12 +30,12 @@ import numpy as np
 
 from fingerps_driver.cameras.camera import (
     Camera,
-    CameraError,
     check_encoding,
     check_frame,
     check_requested_size,
     to_mono,
 )
+from fingerps_driver.errors import CameraError
 
 V4L2_EXPOSURE_UNIT_S = 100e-6
 """One step of V4L2's exposure_time_absolute control."""

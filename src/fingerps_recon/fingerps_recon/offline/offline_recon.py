@@ -50,7 +50,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import FingerpsReconError, RolledPrintError
 from fingerps_recon.offline.diligent_folder import (
     DEFAULT_SHADOW_FRACTION,
     PhotometricDataset,
@@ -68,7 +68,7 @@ from fingerps_recon.photometric.pipeline import (
 )
 from fingerps_recon.surface.ply import write_ply
 from fingerps_recon.surface.png_resolution import png_with_resolution
-from fingerps_recon.surface.rolled_print import RolledPrintError, rolled_print
+from fingerps_recon.surface.rolled_print import rolled_print
 from fingerps_ros.command_line import CommandLineTool
 
 _DEFAULTS = ReconstructionOptions()

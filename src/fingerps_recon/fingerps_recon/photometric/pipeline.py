@@ -27,7 +27,7 @@ from enum import Enum
 
 import numpy as np
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import FingerpsReconError, NoFingerError
 from fingerps_recon.photometric.finger_mask import finger_mask
 from fingerps_recon.photometric.flat_field import flat_field_gain
 from fingerps_recon.photometric.lambertian import solve_lambertian
@@ -48,10 +48,6 @@ _UNIT_TOLERANCE = 1e-3
 # it the directions are (nearly) coplanar or parallel and the normals are not determined
 # (the simulated rig's ratio is 0.31).
 _MIN_LIGHT_CONDITION = 0.02
-
-
-class NoFingerError(FingerpsReconError):
-    """The burst shows nothing to reconstruct (the finger mask selects nothing)."""
 
 
 class Model(Enum):

@@ -15,7 +15,7 @@ import numpy as np
 from sensor_msgs.msg import Image
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import FingerpsReconError, IncompleteBurstError
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.pipeline import (
     FULL_SCALE,
@@ -24,10 +24,6 @@ from fingerps_recon.photometric.pipeline import (
     full_scale_of,
 )
 from fingerps_ros.image_conversion import image_to_array, images_to_array
-
-
-class IncompleteBurstError(FingerpsReconError):
-    """A burst lacks a frame of some LED (it is never reconstructed)."""
 
 
 @dataclass(frozen=True)

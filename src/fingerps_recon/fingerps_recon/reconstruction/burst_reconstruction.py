@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fingerps_msgs.msg import Burst, LightCalibration
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import EmptyReconstructionError
 from fingerps_recon.photometric.pipeline import (
     PreparedCalibration,
     Reconstruction,
@@ -28,10 +28,6 @@ from fingerps_recon.reconstruction.burst_intake import (
     calibration_arrays,
 )
 from fingerps_recon.surface.rolled_print import RolledPrint, rolled_print
-
-
-class EmptyReconstructionError(FingerpsReconError):
-    """A burst whose reconstruction has no valid normal or no point: not a done burst."""
 
 
 @dataclass(frozen=True)

@@ -25,12 +25,16 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from sensor_msgs.msg import CameraInfo
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import (
+    FingerpsReconError,
+    IncompleteBurstError,
+    NoFingerError,
+    RolledPrintError,
+)
 from fingerps_recon.photometric.kernel_warm_up import warm_up_kernels
-from fingerps_recon.photometric.pipeline import NoFingerError, ReconstructionOptions
+from fingerps_recon.photometric.pipeline import ReconstructionOptions
 from fingerps_recon.reconstruction.burst_intake import (
     BurstLimits,
-    IncompleteBurstError,
     check_burst_size,
     check_light_calibration,
     flat_field_maps,
@@ -41,7 +45,7 @@ from fingerps_recon.reconstruction.burst_reconstruction import (
     reconstruct_burst,
 )
 from fingerps_recon.reconstruction.problem_log import LogGate, one_line
-from fingerps_recon.surface.rolled_print import RolledPrint, RolledPrintError
+from fingerps_recon.surface.rolled_print import RolledPrint
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.log import Log
 

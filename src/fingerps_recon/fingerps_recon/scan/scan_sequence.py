@@ -37,13 +37,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import RolledPrintError, ScanAbortedError
 from fingerps_recon.photometric.pipeline import ReconstructionOptions
 from fingerps_recon.scan.burst_motion import BurstMotion, estimate_motion
 from fingerps_recon.scan.finger_presence import FingerPresence, detect_finger
 from fingerps_recon.scan.quality import QualityVerdict, judge_quality, quality_figures
 from fingerps_recon.scan.scan_settings import ScanSettings
-from fingerps_recon.surface.rolled_print import RolledPrintError
 from fingerps_ros.errors import FingerpsError
 
 
@@ -53,10 +52,6 @@ class ScanState(IntEnum):
     WAITING_FOR_FINGER = 0
     CAPTURING = 1
     RECONSTRUCTING = 2
-
-
-class ScanAbortedError(FingerpsReconError):
-    """The goal cannot go on; the message says why and what to do."""
 
 
 class ScanCancelledError(Exception):

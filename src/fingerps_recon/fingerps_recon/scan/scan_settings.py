@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import ImpossibleGoalError
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.scan.quality import QualityThresholds
 
@@ -92,10 +92,6 @@ SCAN_PARAMETERS: tuple[ParameterSpec, ...] = (
                   "empty = none", read_only=True),
 )
 """The scan node's parameters, in the order it declares them."""
-
-
-class ImpossibleGoalError(FingerpsReconError):
-    """A goal's values cannot be run; the message names each and what is allowed."""
 
 
 @dataclass(frozen=True)

@@ -29,21 +29,13 @@ from typing import Any
 from mcap.records import Channel, Message, Schema
 from rclpy.serialization import deserialize_message
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import BagSchemaError, FingerpsReconError, MessageDefinitionError
 from fingerps_recon.sessions.bag_recovery import bag_pieces
 from fingerps_recon.sessions.mcap_records import DamagedRange, McapScan, damage_error
-from fingerps_recon.sessions.message_definition import (
-    MessageDefinitionError,
-    load_message_definition,
-    split_type_name,
-)
+from fingerps_recon.sessions.message_definition import load_message_definition, split_type_name
 
 CHECKED_PACKAGES = frozenset({"fingerps_msgs"})
 """Packages whose schemas must match the installed definitions."""
-
-
-class BagSchemaError(FingerpsReconError):
-    """The bag was recorded with another definition of one of our message types."""
 
 
 @dataclass(frozen=True)

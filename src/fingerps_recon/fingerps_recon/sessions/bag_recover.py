@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import argparse
 
-from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.sessions.bag_recovery import BagRecoveryError, default_destination, recover_bag
+from fingerps_recon.errors import BagRecoveryError, FingerpsReconError
+from fingerps_recon.sessions.bag_recovery import default_destination, recover_bag
 from fingerps_ros.command_line import CommandLineTool
 
 TOOL = CommandLineTool("bag_recover", bad_input=(BagRecoveryError, FingerpsReconError, OSError))

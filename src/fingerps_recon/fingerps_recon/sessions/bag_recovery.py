@@ -31,21 +31,16 @@ from pathlib import Path
 import yaml
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import BagRecoveryError, SessionBagError
 from fingerps_recon.sessions.mcap_records import DamagedRange, McapScan, McapSummary
 from fingerps_recon.sessions.message_definition import MessageDefinition
 from fingerps_recon.sessions.session_bag import (
     METADATA_FILENAME,
     ROSBAG2_METADATA_RECORD,
-    SessionBagError,
     SessionBagWriter,
 )
 
 RECOVERY_METADATA_RECORD = "fingerps.recovery"
-
-
-class BagRecoveryError(FingerpsReconError):
-    """A bag cannot be recovered (no MCAP file, destination taken, nothing readable)."""
 
 
 @dataclass(frozen=True)

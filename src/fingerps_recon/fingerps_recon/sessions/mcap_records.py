@@ -53,7 +53,7 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk
 from zstandard import ZstdError
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import McapDamageError
 
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEADER = struct.Struct("<BQ")
@@ -127,46 +127,6 @@ class McapSummary:
     source: str = ""
     """``"footer"`` (found through the footer), ``"after DataEnd"`` (found by searching for
     the DataEnd record) or ``""`` (none)."""
-
-
-class McapDamageError(FingerpsReconError):
-    """The file is damaged; every intact record was read, ``offset`` is the first damage.
-
-    Attributes
-    ----------
-    path : Path
-        The file.
-    offset : int
-        Byte offset of the first damaged record (or of the bad magic: 0).
-    reason : str
-        What is wrong there.
-    file_size : int
-        Size of the file in bytes.
-    chunk_span_ns : tuple[int, int] or None
-        Log-time range of the first damaged chunk when its header could still be read.
-    damage : tuple[DamagedRange, ...]
-        Every damaged range (empty for a file that is no MCAP at all).
-    """
-
-    def __init__(self, path: Path, offset: int, reason: str, file_size: int,
-                 chunk_span_ns: tuple[int, int] | None = None,
-                 damage: tuple[DamagedRange, ...] = ()) -> None:
-        self.path = Path(path)
-        self.offset = offset
-        self.reason = reason
-        self.file_size = file_size
-        self.chunk_span_ns = chunk_span_ns
-        self.damage = damage
-        more = ""
-        if len(damage) > 1:
-            more = f" (and {len(damage) - 1} more damaged ranges: " + "; ".join(
-                d.describe() for d in damage[1:4]) + ("; ..." if len(damage) > 4 else "") + ")"
-        what = ("every intact chunk was read" if damage
-                else f"the records before offset {offset} are intact")
-        super().__init__(
-            f"{self.path}: damaged at byte offset {offset} of {file_size}: {reason}{more}; "
-            f"{what} - 'bag_recover {self.path}' saves them into a valid bag and reports "
-            "what was lost")
 
 
 @dataclass(frozen=True)
@@ -531,5 +491,5 @@ def summary_statistics(path: str | os.PathLike[str]) -> Statistics | None:
         return None
 
 
-__all__ = ["DamagedRange", "McapDamageError", "McapScan", "McapSummary", "ScanEnd",
-           "ScannedRecord", "damage_error", "scan_records", "summary_statistics"]
+__all__ = ["DamagedRange", "McapScan", "McapSummary", "ScanEnd", "ScannedRecord",
+           "damage_error", "scan_records", "summary_statistics"]

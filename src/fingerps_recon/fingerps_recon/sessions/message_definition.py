@@ -32,7 +32,7 @@ from pathlib import Path
 
 from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import MessageDefinitionError
 
 SEPARATOR = "=" * 80
 """The line between two types in a full definition (without its newline)."""
@@ -56,10 +56,6 @@ PRIMITIVE_TYPES = frozenset({
     "bool", "byte", "char", "float32", "float64", "int8", "uint8",
     "int16", "uint16", "int32", "uint32", "int64", "uint64", "string",
 })
-
-
-class MessageDefinitionError(FingerpsReconError):
-    """A message type's definition could not be found or assembled."""
 
 
 class _DefinitionNotFoundError(Exception):

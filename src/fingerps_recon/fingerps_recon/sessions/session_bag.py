@@ -59,10 +59,9 @@ from typing import Any
 import yaml
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import MessageDefinitionError, SessionBagError
 from fingerps_recon.sessions.message_definition import (
     MessageDefinition,
-    MessageDefinitionError,
     load_message_definition,
     type_description_hash,
 )
@@ -79,10 +78,6 @@ DEFAULT_CHUNK_SIZE = 4 * 1024 * 1024
 NS_PER_S = 1_000_000_000
 INT64_MAX = 2**63 - 1
 """rosbag2's starting_time of a bag without messages; also RMW_DURATION_INFINITE in ns."""
-
-
-class SessionBagError(FingerpsReconError):
-    """A bag could not be created, written or finished; the message says what to do."""
 
 
 class Compression(Enum):

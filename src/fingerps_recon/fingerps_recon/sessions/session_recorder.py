@@ -35,10 +35,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fingerps_recon.errors import SessionBagError
 from fingerps_recon.sessions.sequence_gaps import SequenceGaps
 from fingerps_recon.sessions.session_bag import (
     QosProfileFields,
-    SessionBagError,
     SessionBagWriter,
     qos_profiles_yaml,
 )

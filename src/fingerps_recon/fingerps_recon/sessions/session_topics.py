@@ -15,12 +15,8 @@ from dataclasses import dataclass
 
 from rclpy.qos import QoSProfile
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import RecorderError
 from fingerps_ros import qos, topics
-
-
-class RecorderError(FingerpsReconError):
-    """The recorder cannot start with the parameters given."""
 
 
 @dataclass(frozen=True)

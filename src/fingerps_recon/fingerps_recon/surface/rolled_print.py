@@ -55,13 +55,9 @@ from enum import Enum
 import cv2
 import numpy as np
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import FingerpsReconError, RolledPrintError, UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
-from fingerps_recon.surface.surface_unrolling import (
-    SurfaceUnrolling,
-    UnrollingError,
-    unroll_surface,
-)
+from fingerps_recon.surface.surface_unrolling import SurfaceUnrolling, unroll_surface
 
 MM_PER_INCH = 25.4
 # Print pixels whose source neighbourhood is at least this fraction inside the mask.
@@ -83,14 +79,6 @@ class PrintRejection(Enum):
     TOO_SMALL = "too_small"        # too little finger area
     TOO_STRAINED = "too_strained"  # the surface does not unroll without stretching the skin
     TOO_NOISY = "too_noisy"        # no coherent ridges
-
-
-class RolledPrintError(FingerpsReconError):
-    """No trustworthy print from this reconstruction; ``reason`` says why."""
-
-    def __init__(self, reason: PrintRejection, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ import scipy.ndimage
 import scipy.sparse
 import scipy.sparse.linalg
 
-from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.errors import UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
 
 # Neighbour offsets (rows, cols) of the springs: right, down, down-right, down-left.
@@ -65,10 +65,6 @@ _LAMBDA_START = 1e-4
 _MAX_TRIANGLE_CELLS = 64
 # Smallest eigenvalue of a node's normalised local-fit system (a sliver is left out).
 _MIN_FIT_CONDITION = 1e-4
-
-
-class UnrollingError(FingerpsReconError):
-    """The surface cannot be unrolled (too few nodes, no valid depth)."""
 
 
 @dataclass(frozen=True)
