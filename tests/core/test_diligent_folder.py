@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import scipy.io
+from diligent_cases import CASES, spoil_folder
 
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.offline.diligent_folder import (
@@ -163,78 +164,39 @@ def test_ground_truth_normals_are_read(tmp_path: Path, kind: str) -> None:
 # ----------------------------------------------------------------------------- refusals
 
 
-# light_directions.txt cut to its first 3 rows, then these
-LIGHT_ROWS = {"light count": [], "light malformed": ["0 x 1"], "light width": ["0 1"],
-              "light zero": ["0 0 0"], "light non-unit": ["0 0 0.5"]}
-
-
-def _break(folder: Path, case: str) -> None:
-    """Spoil a valid 4-image grey folder in one way."""
-    lines = (folder / "light_directions.txt").read_text().splitlines()
-    if case in LIGHT_ROWS:
-        (folder / "light_directions.txt").write_text("\n".join([*lines[:3], *LIGHT_ROWS[case]]))
-    elif case == "filenames":
-        (folder / "filenames.txt").unlink()
-    elif case == "image":
-        (folder / "img/002.png").unlink()
-    elif case == "unreadable":
-        (folder / "img/002.png").write_bytes(b"not a png")
-    elif case == "size":
-        cv2.imwrite(str(folder / "img/002.png"), np.full((H, W + 1), 99, np.uint8))
-    elif case == "bit depth":
-        cv2.imwrite(str(folder / "img/002.png"), np.full((H, W), 9999, np.uint16))
-    elif case == "grey and colour":
-        cv2.imwrite(str(folder / "img/002.png"), np.full((H, W, 3), 99, np.uint8))
-    elif case == "lights missing":
-        (folder / "light_directions.txt").unlink()
-    elif case == "intensity count":
-        np.savetxt(folder / "light_intensities.txt", np.ones(5))
-    elif case == "intensity sign":
-        np.savetxt(folder / "light_intensities.txt", [1.0, 0.0, 1.0, 1.0])
-    elif case == "mask size":
-        cv2.imwrite(str(folder / "mask.png"), np.full((H + 2, W), 255, np.uint8))
-    elif case == "mask empty":
-        cv2.imwrite(str(folder / "mask.png"), np.zeros((H, W), np.uint8))
-    elif case == "dark":
-        cv2.imwrite(str(folder / "img/001.png"), np.full((H, W), 3, np.uint8))
-    elif case == "too few":
-        (folder / "filenames.txt").write_text("img/000.png\nimg/001.png\n")
-    elif case == "gt shape":
-        scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": np.zeros((H, W))})
-    elif case == "gt variable":
-        scipy.io.savemat(folder / "Normal_gt.mat", {"normals": np.zeros((H, W, 3))})
-    else:
-        raise AssertionError(case)
-
-
-BAD_CASES = {
-    "filenames": "filenames.txt: missing",
-    "image": "img/002.png is listed in filenames.txt but",
-    "unreadable": "not a readable image",
-    "size": "img/002.png is 9x6 but img/000.png is 8x6",
-    "bit depth": "img/002.png is 16-bit but img/000.png is 8-bit",
+BAD_CASES = {  # every case of diligent_cases, spoiling a valid 4-image grey folder
+    "filenames.txt missing": "filenames.txt: missing",
+    "listed image missing": "img/002.png is listed in filenames.txt but",
+    "image unreadable": "not a readable image",
+    "image sizes differ": "img/002.png is 9x6 but img/000.png is 8x6",
+    "bit depths differ": "img/002.png is 16-bit but img/000.png is 8-bit",
     "grey and colour": "mix grey and colour",
-    "lights missing": "light_directions.txt: missing",
-    "light count": "light_directions.txt has 3 rows but filenames.txt lists 4 images",
-    "light malformed": "light_directions.txt line 4: '0 x 1' is not a row of numbers",
-    "light width": "light_directions.txt line 4: 2 numbers, expected 3",
-    "light zero": "light_directions.txt row 4 is a zero vector",
-    "light non-unit": "light_directions.txt row 4 has length 0.5, not a unit vector",
-    "intensity count": "light_intensities.txt has 5 rows but filenames.txt lists 4 images",
-    "intensity sign": "light_intensities.txt row 2 is [0.0]: intensities must be > 0",
-    "mask size": "mask.png is 8x8 but the images are 8x6",
-    "mask empty": "mask.png selects nothing",
-    "dark": "img/001.png is dark",
-    "too few": "lists 2 image(s): photometric stereo needs at least 3",
-    "gt shape": "Normal_gt.mat: normals of shape (6, 8)",
-    "gt variable": "has no variable 'Normal_gt'",
+    "light_directions.txt missing": "light_directions.txt: missing",
+    "light rows != images": "light_directions.txt has 3 rows but filenames.txt lists 4 images",
+    "malformed light row": "light_directions.txt line 4: '0 x 1' is not a row of numbers",
+    "light row of 2 numbers": "light_directions.txt line 4: 2 numbers, expected 3",
+    "zero light row": "light_directions.txt row 4 is a zero vector",
+    "non-unit light row": "light_directions.txt row 4 has length 0.5, not a unit vector",
+    "intensity rows != images": "light_intensities.txt has 5 rows but filenames.txt lists 4 "
+                                "images",
+    "zero intensity": "light_intensities.txt row 2 is [0.0]: intensities must be > 0",
+    "mask size": "mask.png is 8x7 but the images are 8x6",
+    "mask selects nothing": "mask.png selects nothing",
+    "all-dark image": "img/001.png is dark",
+    "too few images": "lists 2 image(s): photometric stereo needs at least 3",
+    "Normal_gt.mat shape": "Normal_gt.mat: normals of shape (6, 8)",
+    "Normal_gt.mat variable": "has no variable 'Normal_gt'",
 }
+
+
+def test_every_way_of_spoiling_a_folder_is_tried() -> None:
+    assert sorted(BAD_CASES) == sorted(CASES)
 
 
 @pytest.mark.parametrize("case", sorted(BAD_CASES))
 def test_bad_input_is_refused_with_a_message(tmp_path: Path, case: str) -> None:
     folder = _write(tmp_path / "f", _grey8())
-    _break(folder, case)
+    spoil_folder(folder, case)
     with pytest.raises(FingerpsReconError) as info:
         load_diligent_folder(folder)
     message = str(info.value)

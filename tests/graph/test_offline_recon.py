@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import pytest
 import scipy.io
+from diligent_cases import CASES, spoil_folder
 
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_recon.photometric.angular_error import angular_error_deg
@@ -314,28 +315,11 @@ def _small_sphere(folder: Path) -> None:
     _write_sphere(folder, colour16=False, size=(40, 48), radius=16.0, count=6)
 
 
-# light_directions.txt cut to its first 5 rows, then these
-LIGHT_ROWS = {"light rows != images": [], "malformed light row": ["0.1 0.2"],
-              "zero light row": ["0 0 0"], "non-unit light row": ["0 0 2"]}
-
-
-def _spoil(folder: Path, case: str) -> list[str]:
-    """Break a valid small-sphere folder in one way; returns extra arguments."""
-    lights = (folder / "light_directions.txt").read_text().splitlines()
-    if case in LIGHT_ROWS:
-        (folder / "light_directions.txt").write_text("\n".join([*lights[:5], *LIGHT_ROWS[case]]))
-    elif case == "missing filenames.txt":
-        (folder / "filenames.txt").unlink()
-    elif case == "listed image missing":
-        (folder / "003.png").unlink()
-    elif case == "image sizes differ":
-        cv2.imwrite(str(folder / "003.png"), np.full((40, 50), 99, np.uint8))
-    elif case == "mask size":
-        cv2.imwrite(str(folder / "mask.png"), np.full((41, 48), 255, np.uint8))
-    elif case == "mask selects nothing":
-        cv2.imwrite(str(folder / "mask.png"), np.zeros((40, 48), np.uint8))
-    elif case == "all-dark image":
-        cv2.imwrite(str(folder / "002.png"), np.full((40, 48), 2, np.uint8))
+def _arguments(folder: Path, case: str) -> list[str]:
+    """Spoil a valid small-sphere folder (`diligent_cases`) or the command line in one way;
+    returns the extra arguments."""
+    if case in CASES:
+        spoil_folder(folder, case)
     elif case == "missing folder":
         return ["--out", str(folder.parent / "out"), str(folder.parent / "nowhere")]
     elif case == "out is a file":
@@ -352,13 +336,13 @@ def _spoil(folder: Path, case: str) -> list[str]:
 
 BAD_CASES = {
     "missing folder": "nowhere: no such folder",
-    "missing filenames.txt": "filenames.txt: missing",
+    "filenames.txt missing": "filenames.txt: missing",
     "listed image missing": "003.png is listed in filenames.txt but",
-    "image sizes differ": "003.png is 50x40 but 001.png is 48x40",
+    "image sizes differ": "003.png is 49x40 but 001.png is 48x40",
     "light rows != images": "light_directions.txt has 5 rows but filenames.txt lists 6 images",
-    "malformed light row": "light_directions.txt line 6: 2 numbers, expected 3",
+    "light row of 2 numbers": "light_directions.txt line 6: 2 numbers, expected 3",
     "zero light row": "light_directions.txt row 6 is a zero vector",
-    "non-unit light row": "light_directions.txt row 6 has length 2, not a unit vector",
+    "non-unit light row": "light_directions.txt row 6 has length 0.5, not a unit vector",
     "mask size": "mask.png is 48x41 but the images are 48x40",
     "mask selects nothing": "mask.png selects nothing",
     "all-dark image": "002.png is dark",
@@ -373,7 +357,7 @@ def test_bad_input_exits_2_with_one_line(offline_recon: Callable, tmp_path: Path
                                          case: str) -> None:
     folder = tmp_path / "sphere"
     _small_sphere(folder)
-    extra = _spoil(folder, case)
+    extra = _arguments(folder, case)
     args = extra if case == "missing folder" else [folder, "--out", tmp_path / "out", *extra]
     run = offline_recon(*args)
     assert run.returncode == 2, f"{run.stdout}\n{run.stderr}"
