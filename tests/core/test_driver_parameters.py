@@ -20,14 +20,14 @@ from fingerps_driver.driver_parameters import (
     finger_config,
 )
 from fingerps_driver.simulation import RigConfig
+from fingerps_ros.parameters import row_descriptor
 
 
 def _declared(**overrides: Any) -> dict[str, Any]:
     """The values the node declares, in order (a callable default sees the ones before)."""
     values: dict[str, Any] = {}
     for row in driver_parameters(values.__getitem__):
-        default = row.default() if callable(row.default) else row.default
-        values[row.name] = overrides.get(row.name, default)
+        values[row.name] = overrides.get(row.name, row.default_value())
     return values
 
 
@@ -37,7 +37,7 @@ def _rows(values: dict[str, Any] | None = None) -> dict[str, Any]:
 
 
 def _descriptor(name: str) -> ParameterDescriptor:
-    return _rows()[name].descriptor
+    return row_descriptor(_rows()[name])
 
 
 def test_every_parameter_once_in_declaration_order():

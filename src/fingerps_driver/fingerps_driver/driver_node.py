@@ -47,7 +47,7 @@ from fingerps_driver.driver_parameters import (
     board_settings,
     burst_plan,
     camera_settings,
-    declare_driver_parameters,
+    driver_parameters,
     finger_config,
 )
 from fingerps_driver.errors import FingerpsDriverError
@@ -57,6 +57,7 @@ from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import qos, topics
 from fingerps_ros.compressed_topics import CompressedTopics
 from fingerps_ros.node_runner import run_node
+from fingerps_ros.parameters import declare_parameters
 
 
 class DriverNode(Node):
@@ -64,7 +65,7 @@ class DriverNode(Node):
 
     def __init__(self) -> None:
         super().__init__("driver", namespace=topics.NAMESPACE)
-        self._checks = declare_driver_parameters(self)
+        self._checks = declare_parameters(self, driver_parameters(self._param))
         # image_raw/compressed as image_transport publishes it; off by default (7 PNGs a
         # burst); encoded only while subscribed, after the burst is out
         self._image_compressed = CompressedTopics(

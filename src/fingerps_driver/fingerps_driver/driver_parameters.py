@@ -11,12 +11,9 @@ from __future__ import annotations
 
 import array
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.node import Node
 
 from fingerps_calib.intrinsics.camera_info_url import DEFAULT_CAMERA_INFO_URL
 from fingerps_driver.board.backoff import Backoff
@@ -32,7 +29,7 @@ from fingerps_driver.capture.burst_plan import (
     make_plan,
 )
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene
-from fingerps_ros.parameters import Check, ParameterChecks, descriptor, one_of
+from fingerps_ros.parameter_table import ParameterRow, one_of
 
 Values = Callable[[str], Any]
 """The node's current value of a parameter, by name."""
@@ -40,24 +37,6 @@ Values = Callable[[str], Any]
 FINGER_POSE = ("sim.finger_identity", "sim.finger_roll_deg", "sim.finger_yaw_deg",
                "sim.finger_pitch_deg", "sim.finger_shift_mm")
 """The parameters whose change rebuilds the simulated finger."""
-
-
-@dataclass(frozen=True)
-class DriverParameter:
-    """One row of the table: ``default`` may be a callable, evaluated at declaration."""
-
-    name: str
-    default: Any
-    descriptor: ParameterDescriptor
-    check: Check | None = None
-
-
-def _row(name: str, default: Any, description: str, *, check: Check | None = None,
-         dynamic: bool = False, **limits: Any) -> DriverParameter:
-    desc = descriptor(description, **limits)
-    if dynamic:  # a per-LED array: [] by default, numbers checked (see the table)
-        desc.dynamic_typing = True
-    return DriverParameter(name, default, desc, check)
 
 
 def _sphere_center_problem(value: list[float]) -> str | None:
@@ -75,6 +54,13 @@ def _finger_shift_problem(value: list[float]) -> str | None:
     return None
 
 
+def _finger_angle(name: str, description: str, limit: float, beyond: str = "") -> ParameterRow:
+    """A rotation of the simulated finger, degrees, 0 by default and within +-``limit``."""
+    reason = f"must be within +-{limit:g} degrees{beyond}"
+    return ParameterRow(name, 0.0, description, min_value=-limit, max_value=limit,
+                        check=lambda v: None if abs(v) <= limit else reason)
+
+
 def _numbers(value: object) -> list[float] | None:
     """A dynamically typed per-LED array as floats (None when not set); see _numbers_problem."""
     return None if value is None else [float(v) for v in value]  # type: ignore[attr-defined]
@@ -90,179 +76,212 @@ def _numbers_problem(value: object) -> str | None:
     return None
 
 
-def driver_parameters(value: Values) -> tuple[DriverParameter, ...]:
+def _per_led(name: str, description: str,
+             check: Callable[[list[float] | None, int], str | None],
+             led_count: Callable[[], int]) -> ParameterRow:
+    """A per-LED array: [] by default, dynamically typed, its numbers checked by ``check``.
+
+    Not statically typed: a statically typed parameter with no value makes rclpy's
+    get_parameters service answer nothing at all, so `ros2 param dump` printed {} (and
+    rclpy types [] as bytes).
+    """
+    return ParameterRow(name, [], description, dynamic_typing=True,
+                        check=lambda v: _numbers_problem(v) or check(_numbers(v), led_count()))
+
+
+def driver_parameters(value: Values) -> tuple[ParameterRow, ...]:
     """The driver's parameters in declaration order; ``value`` reads one already declared."""
     def led_count() -> int:
         return int(value("led_count"))
 
     return (
         # the board
-        _row("port", SIM_PORT,
-             "Serial device of the LED board (e.g. /dev/ttyACM0, or the emulator's --link), "
-             "or 'sim' for the built-in board emulator on a pseudo-terminal", read_only=True),
-        _row("baudrate", 115200, "Serial baud rate", min_value=1200, max_value=4_000_000,
-             integer=True, read_only=True),
-        _row("board_timeout", 0.05, "Seconds one attempt waits for the board's reply",
-             min_value=0.005, max_value=2.0, read_only=True),
-        _row("board_retries", 2, "Resends of a command after a lost, late or corrupted reply",
-             min_value=0, max_value=10, integer=True, read_only=True),
-        _row("wait_for_port", False,
-             "If the board is missing at start, wait and retry (with back-off) instead of "
-             "exiting with code 2", read_only=True),
-        _row("reconnect_initial_s", 0.5,
-             "First delay before reopening a lost board, seconds; doubled per failed attempt",
-             min_value=0.01, max_value=60.0, read_only=True),
-        _row("reconnect_max_s", 5.0,
-             "Longest delay between attempts to reopen a lost board, seconds",
-             check=lambda v: None if v >= value("reconnect_initial_s")
-             else "must be >= reconnect_initial_s",
-             min_value=0.01, max_value=600.0, read_only=True),
-        _row("led_count", 7, "Number of LEDs on the board", min_value=3, max_value=16,
-             integer=True, read_only=True),
-        _row("led_order", lambda: list(range(led_count())),
-             "LEDs captured in a burst, in capture order (0-based, each at most once; "
-             "default all in index order). Bursts are published sorted by LED index",
-             check=lambda v: check_led_order(list(v), led_count())),
+        ParameterRow(
+            "port", SIM_PORT,
+            "Serial device of the LED board (e.g. /dev/ttyACM0, or the emulator's --link), "
+            "or 'sim' for the built-in board emulator on a pseudo-terminal", read_only=True),
+        ParameterRow(
+            "baudrate", 115200, "Serial baud rate", min_value=1200, max_value=4_000_000,
+            integer=True, read_only=True),
+        ParameterRow(
+            "board_timeout", 0.05, "Seconds one attempt waits for the board's reply",
+            min_value=0.005, max_value=2.0, read_only=True),
+        ParameterRow(
+            "board_retries", 2, "Resends of a command after a lost, late or corrupted reply",
+            min_value=0, max_value=10, integer=True, read_only=True),
+        ParameterRow(
+            "wait_for_port", False,
+            "If the board is missing at start, wait and retry (with back-off) instead of "
+            "exiting with code 2", read_only=True),
+        ParameterRow(
+            "reconnect_initial_s", 0.5,
+            "First delay before reopening a lost board, seconds; doubled per failed attempt",
+            min_value=0.01, max_value=60.0, read_only=True),
+        ParameterRow(
+            "reconnect_max_s", 5.0,
+            "Longest delay between attempts to reopen a lost board, seconds",
+            check=lambda v: None if v >= value("reconnect_initial_s")
+            else "must be >= reconnect_initial_s",
+            min_value=0.01, max_value=600.0, read_only=True),
+        ParameterRow(
+            "led_count", 7, "Number of LEDs on the board", min_value=3, max_value=16,
+            integer=True, read_only=True),
+        ParameterRow(
+            "led_order", lambda: list(range(led_count())),
+            "LEDs captured in a burst, in capture order (0-based, each at most once; "
+            "default all in index order). Bursts are published sorted by LED index",
+            check=lambda v: check_led_order(list(v), led_count())),
         # exposure and levels
-        _row("exposure_time", 0.01, "Exposure time per frame, seconds",
-             min_value=MIN_EXPOSURE_S, max_value=MAX_EXPOSURE_S),
-        # Per-LED arrays default to [] with dynamic typing (the checks require numbers): a
-        # statically typed parameter with no value makes rclpy's get_parameters service
-        # answer nothing at all, so `ros2 param dump` printed {} (and rclpy types [] as bytes).
-        _row("exposure_times", [],
-             "Exposure time of each LED, seconds, indexed by LED (one per LED); "
-             "empty: exposure_time for all", dynamic=True,
-             check=lambda v: _numbers_problem(v) or check_exposures(_numbers(v), led_count())),
-        _row("led_level", 1.0, "Relative LED drive level, 0..1", min_value=0.0,
-             max_value=1.0),
-        _row("led_levels", [],
-             "Relative drive level 0..1 of each LED, indexed by LED (one per LED); "
-             "empty: led_level for all", dynamic=True,
-             check=lambda v: _numbers_problem(v) or check_levels(_numbers(v), led_count())),
+        ParameterRow(
+            "exposure_time", 0.01, "Exposure time per frame, seconds",
+            min_value=MIN_EXPOSURE_S, max_value=MAX_EXPOSURE_S),
+        _per_led(
+            "exposure_times",
+            "Exposure time of each LED, seconds, indexed by LED (one per LED); "
+            "empty: exposure_time for all", check_exposures, led_count),
+        ParameterRow(
+            "led_level", 1.0, "Relative LED drive level, 0..1", min_value=0.0,
+            max_value=1.0),
+        _per_led(
+            "led_levels",
+            "Relative drive level 0..1 of each LED, indexed by LED (one per LED); "
+            "empty: led_level for all", check_levels, led_count),
         # capture modes
-        _row("rate", 0.0, "Continuous capture rate in bursts per second; 0 = only on request",
-             min_value=0.0, max_value=30.0),
-        _row("with_dark_frame", False,
-             "Add an all-LEDs-off frame to continuous bursts (ambient subtraction)"),
+        ParameterRow(
+            "rate", 0.0, "Continuous capture rate in bursts per second; 0 = only on request",
+            min_value=0.0, max_value=30.0),
+        ParameterRow(
+            "with_dark_frame", False,
+            "Add an all-LEDs-off frame to continuous bursts (ambient subtraction)"),
         # the camera
-        _row("camera", CameraBackend.SIM.value,
-             "Camera backend: 'sim' (the simulated rig), 'v4l2' (a real camera through "
-             "OpenCV/V4L2) or 'folder' (replay of a DiLiGenT-layout image folder)",
-             check=one_of(*(c.value for c in CameraBackend)), read_only=True),
-        _row("camera_device", "/dev/video0",
-             "v4l2: device path (e.g. /dev/video0 or /dev/v4l/by-id/...) or index",
-             read_only=True),
-        _row("camera_folder", "",
-             "folder: the folder holding filenames.txt; the i-th listed image is LED i's",
-             read_only=True),
-        _row("camera_width", 0,
-             "Image width to ask for (v4l2), to expect (folder) or to render (sim); 0 = the "
-             "camera's", check=lambda v: None if v >= 0 else "must be >= 0 (0 = default)",
-             min_value=0, max_value=16384, integer=True, read_only=True),
-        _row("camera_height", 0, "Image height, as camera_width",
-             check=lambda v: None if v >= 0 else "must be >= 0 (0 = default)",
-             min_value=0, max_value=16384, integer=True, read_only=True),
-        _row("camera_pixel_format", "",
-             "mono8 or mono16; empty = the camera's (v4l2: mono8, folder: the images' bit "
-             "depth, sim: sim.bit_depth)", check=one_of("", "mono8", "mono16"),
-             read_only=True),
-        _row("camera_fourcc", "",
-             "v4l2: pixel format to ask for (GREY, YUYV, MJPG, 'Y16 '...); empty = mono8: "
-             "the camera's default, mono16: 'Y16 '",
-             check=lambda v: None if len(v) in (0, 4) and v.isascii()
-             else "must be four ASCII characters (e.g. GREY, YUYV, MJPG) or empty",
-             read_only=True),
-        _row("camera_fps", 0.0, "v4l2: frame rate to ask for; 0 = the camera's",
-             min_value=0.0, max_value=1000.0, read_only=True),
-        _row("camera_gain", -1.0,
-             "v4l2: gain in the device's units; negative = leave it as it is",
-             min_value=-1.0, max_value=1e6, read_only=True),
-        _row("camera_discard_frames", 1,
-             "v4l2: frames dropped after each LED switch before the one kept (a free-running "
-             "camera's frame in progress mixes two lights)", min_value=0, max_value=10,
-             integer=True, read_only=True),
-        _row("camera_info_url", "",
-             "Where the camera's calibration is loaded from and set_camera_info stores it "
-             "(camera_info_manager's rules): file:///path.yaml, package://pkg/path.yaml, "
-             "${NAME} and ${ROS_HOME} substituted; empty = "
-             f"{DEFAULT_CAMERA_INFO_URL}. Missing: the sim rig's true intrinsics, or none "
-             "(K = 0) for the other cameras", read_only=True),
-        _row("camera_info_file", "",
-             "Older form of camera_info_url: a camera_info YAML path, which must exist and "
-             "fit the camera (else exit 2); empty = use camera_info_url", read_only=True),
-        _row("frame_id", "fingerps_camera_optical_frame",
-             "TF frame of the camera's optical frame (REP-103)", read_only=True),
-        _row("camera_name", "fingerps_sim",
-             "Camera name: ${NAME} of camera_info_url, written into the calibration file "
-             "(letters, digits, _)", read_only=True),
+        ParameterRow(
+            "camera", CameraBackend.SIM.value,
+            "Camera backend: 'sim' (the simulated rig), 'v4l2' (a real camera through "
+            "OpenCV/V4L2) or 'folder' (replay of a DiLiGenT-layout image folder)",
+            check=one_of(*(c.value for c in CameraBackend)), read_only=True),
+        ParameterRow(
+            "camera_device", "/dev/video0",
+            "v4l2: device path (e.g. /dev/video0 or /dev/v4l/by-id/...) or index",
+            read_only=True),
+        ParameterRow(
+            "camera_folder", "",
+            "folder: the folder holding filenames.txt; the i-th listed image is LED i's",
+            read_only=True),
+        ParameterRow(
+            "camera_width", 0,
+            "Image width to ask for (v4l2), to expect (folder) or to render (sim); 0 = the "
+            "camera's", check=lambda v: None if v >= 0 else "must be >= 0 (0 = default)",
+            min_value=0, max_value=16384, integer=True, read_only=True),
+        ParameterRow(
+            "camera_height", 0, "Image height, as camera_width",
+            check=lambda v: None if v >= 0 else "must be >= 0 (0 = default)",
+            min_value=0, max_value=16384, integer=True, read_only=True),
+        ParameterRow(
+            "camera_pixel_format", "",
+            "mono8 or mono16; empty = the camera's (v4l2: mono8, folder: the images' bit "
+            "depth, sim: sim.bit_depth)", check=one_of("", "mono8", "mono16"),
+            read_only=True),
+        ParameterRow(
+            "camera_fourcc", "",
+            "v4l2: pixel format to ask for (GREY, YUYV, MJPG, 'Y16 '...); empty = mono8: "
+            "the camera's default, mono16: 'Y16 '",
+            check=lambda v: None if len(v) in (0, 4) and v.isascii()
+            else "must be four ASCII characters (e.g. GREY, YUYV, MJPG) or empty",
+            read_only=True),
+        ParameterRow(
+            "camera_fps", 0.0, "v4l2: frame rate to ask for; 0 = the camera's",
+            min_value=0.0, max_value=1000.0, read_only=True),
+        ParameterRow(
+            "camera_gain", -1.0,
+            "v4l2: gain in the device's units; negative = leave it as it is",
+            min_value=-1.0, max_value=1e6, read_only=True),
+        ParameterRow(
+            "camera_discard_frames", 1,
+            "v4l2: frames dropped after each LED switch before the one kept (a free-running "
+            "camera's frame in progress mixes two lights)", min_value=0, max_value=10,
+            integer=True, read_only=True),
+        ParameterRow(
+            "camera_info_url", "",
+            "Where the camera's calibration is loaded from and set_camera_info stores it "
+            "(camera_info_manager's rules): file:///path.yaml, package://pkg/path.yaml, "
+            "${NAME} and ${ROS_HOME} substituted; empty = "
+            f"{DEFAULT_CAMERA_INFO_URL}. Missing: the sim rig's true intrinsics, or none "
+            "(K = 0) for the other cameras", read_only=True),
+        ParameterRow(
+            "camera_info_file", "",
+            "Older form of camera_info_url: a camera_info YAML path, which must exist and "
+            "fit the camera (else exit 2); empty = use camera_info_url", read_only=True),
+        ParameterRow(
+            "frame_id", "fingerps_camera_optical_frame",
+            "TF frame of the camera's optical frame (REP-103)", read_only=True),
+        ParameterRow(
+            "camera_name", "fingerps_sim",
+            "Camera name: ${NAME} of camera_info_url, written into the calibration file "
+            "(letters, digits, _)", read_only=True),
         # the simulated rig
-        _row("sim.scene", Scene.FINGER.value,
-             "What the simulated camera sees: finger, sphere, white_target or empty",
-             check=one_of(*(s.value for s in Scene))),
-        _row("sim.reflectance", Reflectance.HK.value,
-             "Reflectance the simulated rig renders the finger with: hk or lambert",
-             check=one_of(*(r.value for r in Reflectance)), read_only=True),
-        _row("sim.bit_depth", 8, "Simulated sensor bit depth: 8 or 12",
-             check=lambda v: None if v in (8, 12) else "must be 8 or 12",
-             min_value=8, max_value=12, integer=True, read_only=True),
-        _row("sim.seed", 0, "Seed of the simulated sensor noise", min_value=0, integer=True,
-             read_only=True),
-        _row("sim.sphere_center", list(RigConfig().sphere_center_optical_m),
-             "Where the simulated calibration sphere is, [x, y, z] metres in the optical "
-             "frame; move it between calibrate_lights calls (add_placement) to estimate the "
-             "LED positions", check=_sphere_center_problem),
-        _row("sim.finger_motion_px", [0.0, 0.0],
-             "Simulated finger motion during a burst, [du, dv] pixels: frame i of n LEDs is "
-             "shifted by i/n of it, the repeated first LED (repeat_first_led) by all of it",
-             check=lambda v: None if len(v) == 2 and all(np.isfinite(v))
-             and max(abs(x) for x in v) <= 100 else
-             "must be two finite numbers [du, dv] in pixels, each within +-100"),
-        _row("sim.finger_motion_bursts", 0,
-             "Bursts the finger moves in once sim.finger_motion_px is set (counted from "
-             "then); 0 = every burst", min_value=0, max_value=1_000_000, integer=True),
-        _row("sim.finger_identity", -1,
-             "The simulated finger's fingerprint: -1 the analytic spiral, n >= 0 the synthetic "
-             "fingerprint of identity n (SFinGe-style, ~1 s to generate); changing it or the "
-             "pose rebuilds the finger (a few seconds) before the next burst",
-             check=lambda v: None if -1 <= v <= 2**31 - 1 else
-             "must be -1 (the analytic spiral) or a fingerprint identity 0..2^31-1",
-             min_value=-1, max_value=2**31 - 1, integer=True),
-        _row("sim.finger_roll_deg", 0.0,
-             "Rotation of the simulated finger about its own axis, degrees (+ brings the skin "
-             "at the apex towards +x)",
-             check=lambda v: None if abs(v) <= 45.0 else
-             "must be within +-45 degrees (beyond, the skin seen leaves the rolled print)",
-             min_value=-45.0, max_value=45.0),
-        _row("sim.finger_yaw_deg", 0.0,
-             "Rotation of the simulated finger about the optical axis through its apex, "
-             "degrees, from +x towards +y (clockwise as displayed)",
-             check=lambda v: None if abs(v) <= 90.0 else "must be within +-90 degrees",
-             min_value=-90.0, max_value=90.0),
-        _row("sim.finger_pitch_deg", 0.0,
-             "Then its rotation about the optical x axis through its apex, degrees, from +y "
-             "towards +z (+ brings the tip towards the camera)",
-             check=lambda v: None if abs(v) <= 15.0 else
-             "must be within +-15 degrees (beyond, a margin comes near grazing)",
-             min_value=-15.0, max_value=15.0),
-        _row("sim.finger_shift_mm", [0.0, 0.0],
-             "Shift [dx, dy] of the simulated finger's apex in the image plane, mm (optical "
-             "x right, y down), each within +-5", check=_finger_shift_problem),
-        _row("sim.board_control", "",
-             "Control socket of a board_emulator process (its --control): with a port other "
-             "than 'sim', the sim and folder cameras see the LEDs that emulator has lit",
-             read_only=True),
+        ParameterRow(
+            "sim.scene", Scene.FINGER.value,
+            "What the simulated camera sees: finger, sphere, white_target or empty",
+            check=one_of(*(s.value for s in Scene))),
+        ParameterRow(
+            "sim.reflectance", Reflectance.HK.value,
+            "Reflectance the simulated rig renders the finger with: hk or lambert",
+            check=one_of(*(r.value for r in Reflectance)), read_only=True),
+        ParameterRow(
+            "sim.bit_depth", 8, "Simulated sensor bit depth: 8 or 12",
+            check=lambda v: None if v in (8, 12) else "must be 8 or 12",
+            min_value=8, max_value=12, integer=True, read_only=True),
+        ParameterRow(
+            "sim.seed", 0, "Seed of the simulated sensor noise", min_value=0, integer=True,
+            read_only=True),
+        ParameterRow(
+            "sim.sphere_center", list(RigConfig().sphere_center_optical_m),
+            "Where the simulated calibration sphere is, [x, y, z] metres in the optical "
+            "frame; move it between calibrate_lights calls (add_placement) to estimate the "
+            "LED positions", check=_sphere_center_problem),
+        ParameterRow(
+            "sim.finger_motion_px", [0.0, 0.0],
+            "Simulated finger motion during a burst, [du, dv] pixels: frame i of n LEDs is "
+            "shifted by i/n of it, the repeated first LED (repeat_first_led) by all of it",
+            check=lambda v: None if len(v) == 2 and all(np.isfinite(v))
+            and max(abs(x) for x in v) <= 100 else
+            "must be two finite numbers [du, dv] in pixels, each within +-100"),
+        ParameterRow(
+            "sim.finger_motion_bursts", 0,
+            "Bursts the finger moves in once sim.finger_motion_px is set (counted from "
+            "then); 0 = every burst", min_value=0, max_value=1_000_000, integer=True),
+        ParameterRow(
+            "sim.finger_identity", -1,
+            "The simulated finger's fingerprint: -1 the analytic spiral, n >= 0 the synthetic "
+            "fingerprint of identity n (SFinGe-style, ~1 s to generate); changing it or the "
+            "pose rebuilds the finger (a few seconds) before the next burst",
+            check=lambda v: None if -1 <= v <= 2**31 - 1 else
+            "must be -1 (the analytic spiral) or a fingerprint identity 0..2^31-1",
+            min_value=-1, max_value=2**31 - 1, integer=True),
+        _finger_angle(
+            "sim.finger_roll_deg",
+            "Rotation of the simulated finger about its own axis, degrees (+ brings the skin "
+            "at the apex towards +x)", 45.0,
+            " (beyond, the skin seen leaves the rolled print)"),
+        _finger_angle(
+            "sim.finger_yaw_deg",
+            "Rotation of the simulated finger about the optical axis through its apex, "
+            "degrees, from +x towards +y (clockwise as displayed)", 90.0),
+        _finger_angle(
+            "sim.finger_pitch_deg",
+            "Then its rotation about the optical x axis through its apex, degrees, from +y "
+            "towards +z (+ brings the tip towards the camera)", 15.0,
+            " (beyond, a margin comes near grazing)"),
+        ParameterRow(
+            "sim.finger_shift_mm", [0.0, 0.0],
+            "Shift [dx, dy] of the simulated finger's apex in the image plane, mm (optical "
+            "x right, y down), each within +-5", check=_finger_shift_problem),
+        ParameterRow(
+            "sim.board_control", "",
+            "Control socket of a board_emulator process (its --control): with a port other "
+            "than 'sim', the sim and folder cameras see the LEDs that emulator has lit",
+            read_only=True),
     )
-
-
-def declare_driver_parameters(node: Node) -> ParameterChecks:
-    """Declare every driver parameter with its descriptor and check; return the checks."""
-    checks = ParameterChecks(node)
-    for row in driver_parameters(lambda name: node.get_parameter(name).value):
-        if row.check is not None:
-            checks.add(row.name, row.check)
-        default = row.default() if callable(row.default) else row.default
-        node.declare_parameter(row.name, default, row.descriptor)
-    return checks
 
 
 def board_settings(value: Values) -> BoardSettings:

@@ -1,15 +1,15 @@
 """Declaring ROS parameters with descriptors and refusing bad values with a reason.
 
-Every fingerps node declares each parameter with a description and, for numbers, a range
-(shown by ``ros2 param describe``); ``ParameterChecks`` holds per-parameter checks that run
-in the on-set callback, so a bad value set at run time is refused with a reason instead of
+Every fingerps node declares its parameter table (`fingerps_ros.parameter_table`: each
+parameter with a description and, for numbers, a range, shown by ``ros2 param describe``)
+with `declare_parameters`; ``ParameterChecks`` holds the per-parameter checks that run in
+the on-set callback, so a bad value set at run time is refused with a reason instead of
 being taken.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
-from typing import Any
+from collections.abc import Iterable
 
 from rcl_interfaces.msg import (
     FloatingPointRange,
@@ -20,13 +20,11 @@ from rcl_interfaces.msg import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from fingerps_ros.parameter_table import Check, ParameterRow
+
 
 class UnknownParameterError(Exception):
     """A parameter file or --ros-args set a parameter the node does not have."""
-
-
-Check = Callable[[Any], str | None]
-"""Returns None when the value is acceptable, else the reason it is refused."""
 
 
 def descriptor(
@@ -52,11 +50,13 @@ def descriptor(
     return desc
 
 
-def one_of(*choices: str) -> Check:
-    """A check accepting only the given strings."""
-    def check(value: Any) -> str | None:
-        return None if value in choices else f"must be one of {', '.join(choices)}"
-    return check
+def row_descriptor(row: ParameterRow) -> ParameterDescriptor:
+    """The ParameterDescriptor of a row of a parameter table (what ``ros2 param describe``
+    shows of it)."""
+    desc = descriptor(row.description, min_value=row.min_value, max_value=row.max_value,
+                      integer=row.integer, read_only=row.read_only, constraints=row.constraints)
+    desc.dynamic_typing = row.dynamic_typing
+    return desc
 
 
 class ParameterChecks:
@@ -94,3 +94,28 @@ class ParameterChecks:
     def _on_set(self, parameters: list[Parameter]) -> SetParametersResult:
         found = self.problems(parameters)
         return SetParametersResult(successful=not found, reason="; ".join(found))
+
+
+def declare_parameters(node: Node, rows: Iterable[ParameterRow], *,
+                       check_while_declaring: bool = True) -> ParameterChecks:
+    """Declare ``rows`` on ``node`` in their order, each with its descriptor; return the
+    checks (for more parameters, and ``refuse_unknown_overrides``).
+
+    A row's callable default is evaluated just before the row is declared (so it may read
+    the parameters declared before it). Each row's check is in force from its declaration
+    on: a bad value given at start raises rclpy's ``InvalidParameterValueException``, which
+    ``run_node`` reports in one line. With ``check_while_declaring=False`` the checks are
+    added after the last row, for a node that names every bad start value at once
+    (``ParameterChecks.problems``).
+    """
+    checks = ParameterChecks(node)
+    table = tuple(rows)
+    for row in table:
+        if check_while_declaring and row.check is not None:
+            checks.add(row.name, row.check)
+        node.declare_parameter(row.name, row.default_value(), row_descriptor(row))
+    if not check_while_declaring:
+        for row in table:
+            if row.check is not None:
+                checks.add(row.name, row.check)
+    return checks

@@ -39,11 +39,33 @@ from fingerps_recon.sessions.bag_reader import BagMessage, SessionBagReader, mes
 from fingerps_recon.sessions.session_topics import TOPIC_TABLE
 from fingerps_ros import qos
 from fingerps_ros.node_runner import StartupError, run_node
-from fingerps_ros.parameters import ParameterChecks, descriptor
+from fingerps_ros.parameter_table import ParameterRow
+from fingerps_ros.parameters import declare_parameters
 
 SUBSCRIBER_WAIT_S = 10.0
 LINGER_S = 0.5
 """Seconds the node stays up after the last message, so reliable deliveries complete."""
+
+
+BAG_REPLAY_PARAMETERS = (
+    ParameterRow("bag", "", "Bag directory (or .mcap file) to play", read_only=True,
+                 check=lambda v: None if str(v) else "must name a bag directory or .mcap"),
+    ParameterRow("rate", 1.0, "Speed factor of the recorded timing; 0 = back to back",
+                 min_value=0.0, max_value=1000.0, read_only=True),
+    ParameterRow("start", 0.0, "Seconds after the bag's first message to start at",
+                 min_value=0.0, max_value=1e9, read_only=True),
+    ParameterRow("stop", 0.0, "Seconds after the bag's first message to stop at; 0 = the end",
+                 min_value=0.0, max_value=1e9, read_only=True),
+    ParameterRow("topics", [""], "Topics to play (absolute, as recorded); empty = all",
+                 read_only=True),
+    ParameterRow("wait_for_subscribers", 0,
+                 "Hold each non-calibration topic's first message until this many subscribers "
+                 f"matched (at most {SUBSCRIBER_WAIT_S:.0f} s)", min_value=0, max_value=100,
+                 integer=True, read_only=True),
+    ParameterRow("exit_when_done", True, "Shut the node down after the last message",
+                 read_only=True),
+)
+"""bag_replay's parameters, in declaration order (all read-only: set at start)."""
 
 
 def _is_transient_local(offered_qos_yaml: str) -> bool:
@@ -60,24 +82,7 @@ class BagReplayNode(Node):
 
     def __init__(self) -> None:
         super().__init__("bag_replay", namespace="/fingerps")
-        checks = ParameterChecks(self)
-        checks.add("bag", lambda v: None if str(v) else "must name a bag directory or .mcap")
-        p = self.declare_parameter
-        p("bag", "", descriptor("Bag directory (or .mcap file) to play", read_only=True))
-        p("rate", 1.0, descriptor("Speed factor of the recorded timing; 0 = back to back",
-                                  min_value=0.0, max_value=1000.0, read_only=True))
-        p("start", 0.0, descriptor("Seconds after the bag's first message to start at",
-                                   min_value=0.0, max_value=1e9, read_only=True))
-        p("stop", 0.0, descriptor("Seconds after the bag's first message to stop at; 0 = the "
-                                  "end", min_value=0.0, max_value=1e9, read_only=True))
-        p("topics", [""], descriptor("Topics to play (absolute, as recorded); empty = all",
-                                     read_only=True))
-        p("wait_for_subscribers", 0, descriptor(
-            "Hold each non-calibration topic's first message until this many subscribers "
-            f"matched (at most {SUBSCRIBER_WAIT_S:.0f} s)", min_value=0, max_value=100,
-            integer=True, read_only=True))
-        p("exit_when_done", True, descriptor("Shut the node down after the last message",
-                                             read_only=True))
+        checks = declare_parameters(self, BAG_REPLAY_PARAMETERS)
         checks.refuse_unknown_overrides(self)
         g = self.get_parameter
         bag = str(g("bag").value)

@@ -40,15 +40,12 @@ from fingerps_recon.reconstruction.outputs import (
     fingerprint_message,
     output_messages,
 )
-from fingerps_recon.reconstruction.parameters import (
-    declare_parameters,
-    follow_threads,
-    read_settings,
-)
+from fingerps_recon.reconstruction.parameters import PARAMETERS, follow_threads, read_settings
 from fingerps_recon.reconstruction.worker import ReconstructionWorker
 from fingerps_ros import qos, topics
 from fingerps_ros.compressed_topics import CompressedTopics
 from fingerps_ros.node_runner import run_node
+from fingerps_ros.parameters import declare_parameters
 
 
 class ReconNode(Node):
@@ -57,7 +54,7 @@ class ReconNode(Node):
     def __init__(self, **node_options: object) -> None:
         """``node_options``: rclpy ``Node`` keywords (a test gives its ``context``)."""
         super().__init__("recon", namespace=topics.NAMESPACE, **node_options)
-        checks = declare_parameters(self)
+        checks = declare_parameters(self, PARAMETERS)
         # image_transport-style companions (normal_map/compressed, fingerprint/compressed,
         # depth/compressedDepth): encoded only while subscribed (compressed_topics.py)
         self._compressed = {

@@ -35,12 +35,7 @@ from fingerps_msgs.srv import CaptureBurst
 from fingerps_recon.errors import FingerpsReconError, ScanAbortedError
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.normal_map import normal_map_rgb
-from fingerps_recon.photometric.pipeline import (
-    Model,
-    Projection,
-    ReconstructionOptions,
-    full_scale_of,
-)
+from fingerps_recon.photometric.pipeline import ReconstructionOptions, full_scale_of
 from fingerps_recon.reconstruction.burst_reconstruction import (
     BurstReconstruction,
     PreparedCalibrations,
@@ -62,7 +57,7 @@ from fingerps_ros import qos, topics
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.image_conversion import array_to_image, image_to_array
 from fingerps_ros.node_runner import run_node
-from fingerps_ros.parameters import ParameterChecks, descriptor, one_of
+from fingerps_ros.parameters import declare_parameters
 from fingerps_ros.point_cloud_conversion import points_to_cloud
 
 SCAN = "scan"                       # fingerps_msgs/action/Scan
@@ -74,14 +69,7 @@ class ScanNode(Node):
 
     def __init__(self) -> None:
         super().__init__("scan", namespace=topics.NAMESPACE)
-        checks = self._checks = ParameterChecks(self)
-        checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
-        checks.add("model", one_of(*(m.value for m in Model)))
-        checks.add("projection", one_of(*(m.value for m in Projection)))
-        for s in SCAN_PARAMETERS:
-            self.declare_parameter(s.name, s.default, descriptor(
-                s.description, min_value=s.min_value, max_value=s.max_value,
-                integer=s.integer, read_only=s.read_only))
+        self._checks = declare_parameters(self, SCAN_PARAMETERS)
         self._checks.refuse_unknown_overrides(self)
         self._group = ReentrantCallbackGroup()
         self._lights: LightCalibration | None = None

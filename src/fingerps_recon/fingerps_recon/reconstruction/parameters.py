@@ -1,5 +1,5 @@
-"""recon_node's parameters: the declarations (names, defaults, descriptors, checks) and the
-settings read from them (:class:`~fingerps_recon.reconstruction.worker.ReconSettings`)."""
+"""recon_node's parameters: their table (names, defaults, descriptions, ranges, checks) and
+the settings read from them (:class:`~fingerps_recon.reconstruction.worker.ReconSettings`)."""
 
 from __future__ import annotations
 
@@ -10,72 +10,76 @@ from fingerps_recon.photometric.kernel_threads import set_thread_limit
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.worker import ReconSettings
-from fingerps_ros.parameters import ParameterChecks, descriptor, one_of
+from fingerps_ros.parameter_table import ParameterRow, one_of
 
 PARAMETERS = (
-    ("model", Model.HK.value, descriptor(
+    ParameterRow(
+        "model", Model.HK.value,
         "Reflectance model of the normals: hk (the paper's simplified Hanrahan-Krueger "
         "skin model, initialised from lambert) or lambert (Lambertian photometric "
-        "stereo)")),
-    ("projection", Projection.PERSPECTIVE.value, descriptor(
+        "stereo)", check=one_of(*(m.value for m in Model))),
+    ParameterRow(
+        "projection", Projection.PERSPECTIVE.value,
         "Camera model of the views, the integration and the points: perspective (from "
-        "the burst's camera_info) or orthographic")),
-    ("hk_iterations", 5, descriptor(
-        "Levenberg-Marquardt iterations of the HK solver", min_value=1, max_value=100,
-        integer=True)),
-    ("threads", 0, descriptor(
+        "the burst's camera_info) or orthographic",
+        check=one_of(*(p.value for p in Projection))),
+    ParameterRow(
+        "hk_iterations", 5, "Levenberg-Marquardt iterations of the HK solver",
+        min_value=1, max_value=100, integer=True),
+    ParameterRow(
+        "threads", 0,
         "Threads of the per-pixel solvers; 0 = every core. On a machine whose other cores "
         "are busy (driver, recorder) fewer threads can finish a burst sooner",
-        min_value=0, max_value=256, integer=True)),
-    ("queue_depth", 2, descriptor(
+        min_value=0, max_value=256, integer=True),
+    ParameterRow(
+        "queue_depth", 2,
         "Bursts waiting for reconstruction; the oldest is dropped beyond this",
-        min_value=1, max_value=100, integer=True, read_only=True)),
-    ("mask_threshold", 0.15, descriptor(
+        min_value=1, max_value=100, integer=True, read_only=True),
+    ParameterRow(
+        "mask_threshold", 0.15,
         "Finger mask: fraction of the brightest level a pixel must exceed",
-        min_value=0.01, max_value=0.9)),
-    ("fingerprint", False, descriptor(
+        min_value=0.01, max_value=0.9),
+    ParameterRow(
+        "fingerprint", False,
         "Also publish the rolled-equivalent 500 ppi print of every burst on 'fingerprint' "
         "(mono8, ridges dark; ~50 ms a burst on top of the reconstruction, so off by "
-        "default; the Scan action always makes one)")),
-    ("enhance", True, descriptor(
+        "default; the Scan action always makes one)"),
+    ParameterRow(
+        "enhance", True,
         "Publish the normal map after ridge enhancement (paper Eq. 12); the normals "
-        "topic always carries the unenhanced normals")),
-    ("w", 7, descriptor("Ridge enhancement patch size (odd), pixels", min_value=3,
-                        max_value=51, integer=True)),
-    ("k", 2.5, descriptor("Ridge enhancement gain", min_value=0.0, max_value=20.0)),
-    ("working_distance", 0.09, descriptor(
+        "topic always carries the unenhanced normals"),
+    ParameterRow(
+        "w", 7, "Ridge enhancement patch size (odd), pixels", min_value=3, max_value=51,
+        integer=True, check=lambda v: None if v % 2 == 1 else "must be odd"),
+    ParameterRow("k", 2.5, "Ridge enhancement gain", min_value=0.0, max_value=20.0),
+    ParameterRow(
+        "working_distance", 0.09,
         "Camera-to-finger distance along the optical axis, metres (metric scale of "
-        "depth)", min_value=0.005, max_value=2.0)),
-    ("mono16_full_scale", 4095.0, descriptor(
+        "depth)", min_value=0.005, max_value=2.0),
+    ParameterRow(
+        "mono16_full_scale", 4095.0,
         "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
-        max_value=65535.0)),
-    ("max_image_width", BurstLimits.max_width, descriptor(
+        max_value=65535.0),
+    ParameterRow(
+        "max_image_width", BurstLimits.max_width,
         "Widest image accepted (bursts, dark frames, flat-field maps, the camera_info "
         "the calibration is prepared for), pixels; wider ones are refused on arrival",
-        min_value=1, max_value=65535, integer=True)),
-    ("max_image_height", BurstLimits.max_height, descriptor(
+        min_value=1, max_value=65535, integer=True),
+    ParameterRow(
+        "max_image_height", BurstLimits.max_height,
         "Tallest image accepted, pixels (as max_image_width)", min_value=1,
-        max_value=65535, integer=True)),
-    ("max_burst_frames", BurstLimits.max_frames, descriptor(
+        max_value=65535, integer=True),
+    ParameterRow(
+        "max_burst_frames", BurstLimits.max_frames,
         "Most frames a burst (or flat-field maps a flat field) may carry; more are "
-        "refused on arrival", min_value=3, max_value=256, integer=True)),
-    ("health_window", 5, descriptor(
+        "refused on arrival", min_value=3, max_value=256, integer=True),
+    ParameterRow(
+        "health_window", 5,
         "Recent bursts /diagnostics judges: WARN while one of them failed, ERROR when "
-        "all of them did", min_value=1, max_value=1000, integer=True, read_only=True)),
+        "all of them did", min_value=1, max_value=1000, integer=True, read_only=True),
 )
-"""(name, default, descriptor) of each parameter, in the order they are declared."""
-
-
-def declare_parameters(node: Node) -> ParameterChecks:
-    """Declare :data:`PARAMETERS` on ``node`` with their checks (``w`` odd, ``model`` and
-    ``projection`` one of theirs); returns the checks, for more parameters."""
-    checks = ParameterChecks(node)
-    checks.add("w", lambda v: None if v % 2 == 1 else "must be odd")
-    checks.add("model", one_of(*(m.value for m in Model)))
-    checks.add("projection", one_of(*(m.value for m in Projection)))
-    for name, default, desc in PARAMETERS:
-        node.declare_parameter(name, default, desc)
-    return checks
+"""recon_node's parameter table (``w`` odd, ``model`` and ``projection`` one of theirs), in
+the order they are declared (``fingerps_ros.parameters.declare_parameters``)."""
 
 
 def follow_threads(node: Node) -> None:

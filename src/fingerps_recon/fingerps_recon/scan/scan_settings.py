@@ -1,9 +1,10 @@
 """What one Scan goal runs with: the scan node's parameters and a goal's own values.
 
-`SCAN_PARAMETERS` is the scan node's parameter table (name, default, description, range),
-plain data the node declares; `GOAL_PARAMETERS` are the ones a goal may override
-(``Scan.Goal.overrides``): reconstruction and judgement. `goal_settings` turns the values in
-force for a goal into `ScanSettings`, or says everything that is impossible about it.
+`SCAN_PARAMETERS` is the scan node's parameter table (`fingerps_ros.parameter_table`: name,
+default, description, range, check), plain data the node declares; `GOAL_PARAMETERS` are
+the ones a goal may override (``Scan.Goal.overrides``): reconstruction and judgement.
+`goal_settings` turns the values in force for a goal into `ScanSettings`, or says
+everything that is impossible about it.
 
 No ROS here.
 """
@@ -18,6 +19,7 @@ from typing import Any
 from fingerps_recon.errors import ImpossibleGoalError
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.scan.quality import QualityThresholds
+from fingerps_ros.parameter_table import ParameterRow, one_of
 
 MAX_BURSTS = 20
 
@@ -29,67 +31,57 @@ GOAL_PARAMETERS = (
 """Parameters a goal may override (``Scan.Goal.overrides``)."""
 
 
-@dataclass(frozen=True)
-class ParameterSpec:
-    """One parameter of the scan node: what ``ros2 param describe`` shows of it."""
-
-    name: str
-    default: Any
-    description: str
-    min_value: float | None = None
-    max_value: float | None = None
-    integer: bool = False
-    read_only: bool = False
-
-
 _T = QualityThresholds()
-SCAN_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec("model", Model.HK.value,
-                  "Reflectance model: hk (the paper's skin model; the most accurate normals) "
-                  "or lambert (faster); a goal's model field overrides it"),
-    ParameterSpec("projection", Projection.PERSPECTIVE.value,
-                  "Camera model: perspective (the burst's camera_info) or orthographic"),
-    ParameterSpec("hk_iterations", 5, "Levenberg-Marquardt iterations of the HK solver",
-                  1, 100, integer=True),
-    ParameterSpec("mask_threshold", 0.15,
-                  "Finger mask: fraction of the brightest level a pixel must exceed", 0.01, 0.9),
-    ParameterSpec("enhance", True, "Ridge enhancement (paper Eq. 12) of the normal map"),
-    ParameterSpec("w", 7, "Ridge enhancement patch size (odd), pixels", 3, 51, integer=True),
-    ParameterSpec("k", 2.5, "Ridge enhancement gain", 0.0, 20.0),
-    ParameterSpec("working_distance", 0.09,
-                  "Camera-to-finger distance, metres (metric scale of depth)", 0.005, 2.0),
-    ParameterSpec("mono16_full_scale", 4095.0, "Largest value of a mono16 image", 1.0, 65535.0),
-    ParameterSpec("timeout", 30.0, "Seconds a goal may take when it gives timeout 0",
-                  0.1, 3600.0),
-    ParameterSpec("capture_timeout", 10.0,
-                  "Seconds to wait for the driver's capture_burst answer", 0.1, 120.0),
-    ParameterSpec("presence_threshold", 0.05,
-                  "Finger presence: lit minus dark must exceed this fraction of full scale",
-                  0.001, 0.9),
-    ParameterSpec("presence_min_coverage", 0.1,
-                  "Finger presence: the bright region must cover this fraction of the image",
-                  0.0, 1.0),
-    ParameterSpec("presence_period", 0.2,
-                  "Seconds between presence checks while waiting for a finger", 0.0, 10.0),
-    ParameterSpec("max_motion_px", 2.0,
-                  "A burst whose finger moved more than this (first LED vs its repeat, "
-                  "pixels) is retaken; ~1/8 of the rig's ridge period (0.5 mm = 16.7 px)",
-                  0.0, 100.0),
-    ParameterSpec("max_retakes", 5, "Bursts retaken for motion before the goal is aborted",
-                  0, 100, integer=True),
-    ParameterSpec("min_coverage", _T.min_coverage,
-                  "Verdict: reconstructed finger pixels / image pixels at least", 0.0, 1.0),
-    ParameterSpec("max_saturated_fraction", _T.max_saturated_fraction,
-                  "Verdict: finger pixels saturated in some frame at most", 0.0, 1.0),
-    ParameterSpec("max_dark_fraction", _T.max_dark_fraction,
-                  "Verdict: finger pixels in shadow in some frame at most", 0.0, 1.0),
-    ParameterSpec("min_ridge_visibility", _T.min_ridge_visibility,
-                  "Verdict: ridge-band energy ratio of the normals at least", 0.0, 100.0),
-    ParameterSpec("max_residual", _T.max_residual,
-                  "Verdict: Lambertian fit residual (rms / mean intensity) at most", 0.0, 10.0),
-    ParameterSpec("recorder", "recorder",
-                  "The recorder node (relative to the namespace) whose bag the result names; "
-                  "empty = none", read_only=True),
+SCAN_PARAMETERS: tuple[ParameterRow, ...] = (
+    ParameterRow("model", Model.HK.value,
+                 "Reflectance model: hk (the paper's skin model; the most accurate normals) "
+                 "or lambert (faster); a goal's model field overrides it",
+                 check=one_of(*(m.value for m in Model))),
+    ParameterRow("projection", Projection.PERSPECTIVE.value,
+                 "Camera model: perspective (the burst's camera_info) or orthographic",
+                 check=one_of(*(p.value for p in Projection))),
+    ParameterRow("hk_iterations", 5, "Levenberg-Marquardt iterations of the HK solver",
+                 1, 100, integer=True),
+    ParameterRow("mask_threshold", 0.15,
+                 "Finger mask: fraction of the brightest level a pixel must exceed", 0.01, 0.9),
+    ParameterRow("enhance", True, "Ridge enhancement (paper Eq. 12) of the normal map"),
+    ParameterRow("w", 7, "Ridge enhancement patch size (odd), pixels", 3, 51, integer=True,
+                 check=lambda v: None if v % 2 == 1 else "must be odd"),
+    ParameterRow("k", 2.5, "Ridge enhancement gain", 0.0, 20.0),
+    ParameterRow("working_distance", 0.09,
+                 "Camera-to-finger distance, metres (metric scale of depth)", 0.005, 2.0),
+    ParameterRow("mono16_full_scale", 4095.0, "Largest value of a mono16 image", 1.0, 65535.0),
+    ParameterRow("timeout", 30.0, "Seconds a goal may take when it gives timeout 0",
+                 0.1, 3600.0),
+    ParameterRow("capture_timeout", 10.0,
+                 "Seconds to wait for the driver's capture_burst answer", 0.1, 120.0),
+    ParameterRow("presence_threshold", 0.05,
+                 "Finger presence: lit minus dark must exceed this fraction of full scale",
+                 0.001, 0.9),
+    ParameterRow("presence_min_coverage", 0.1,
+                 "Finger presence: the bright region must cover this fraction of the image",
+                 0.0, 1.0),
+    ParameterRow("presence_period", 0.2,
+                 "Seconds between presence checks while waiting for a finger", 0.0, 10.0),
+    ParameterRow("max_motion_px", 2.0,
+                 "A burst whose finger moved more than this (first LED vs its repeat, "
+                 "pixels) is retaken; ~1/8 of the rig's ridge period (0.5 mm = 16.7 px)",
+                 0.0, 100.0),
+    ParameterRow("max_retakes", 5, "Bursts retaken for motion before the goal is aborted",
+                 0, 100, integer=True),
+    ParameterRow("min_coverage", _T.min_coverage,
+                 "Verdict: reconstructed finger pixels / image pixels at least", 0.0, 1.0),
+    ParameterRow("max_saturated_fraction", _T.max_saturated_fraction,
+                 "Verdict: finger pixels saturated in some frame at most", 0.0, 1.0),
+    ParameterRow("max_dark_fraction", _T.max_dark_fraction,
+                 "Verdict: finger pixels in shadow in some frame at most", 0.0, 1.0),
+    ParameterRow("min_ridge_visibility", _T.min_ridge_visibility,
+                 "Verdict: ridge-band energy ratio of the normals at least", 0.0, 100.0),
+    ParameterRow("max_residual", _T.max_residual,
+                 "Verdict: Lambertian fit residual (rms / mean intensity) at most", 0.0, 10.0),
+    ParameterRow("recorder", "recorder",
+                 "The recorder node (relative to the namespace) whose bag the result names; "
+                 "empty = none", read_only=True),
 )
 """The scan node's parameters, in the order it declares them."""
 
