@@ -39,6 +39,7 @@ import numpy as np
 from numba import prange
 
 from fingerps_recon.photometric.kernel_compile import inline_kernel, parallel_kernel, serial_kernel
+from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric_adjugate
 
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
 _U = numba.uint64
@@ -85,6 +86,11 @@ _EXP_P = tuple(np.float32(c) for c in (
 _P0, _P1, _P2, _P3, _P4, _P5 = _EXP_P
 _BIAS = np.int32(127)
 _MANTISSA = np.int32(23)
+
+
+# The symmetric 3x3 solve by the adjugate (photometric.symmetric_solve), inlined.
+_adjugate = inline_kernel(symmetric_adjugate)
+_adjugate_solve = inline_kernel(adjugate_solve)
 
 
 @inline_kernel
@@ -139,6 +145,19 @@ def _view_terms(n, j0, m, views, consts, scr):
         scr[_U(_VTY + i)] = vy - cr * ny
 
 
+@inline_kernel
+def _row_into_scratch(k, j0, m, per_light, row, scr):
+    """Row k of ``per_light`` over the chunk's pixels (``per_light`` (K, N)), or its one value
+    for every pixel (``per_light`` (K, 1)), into the scratch row at offset ``row``."""
+    if per_light.shape[1] > 1:
+        for i in range(m):
+            scr[_U(row + i)] = per_light[k, _U(j0 + i)]
+    else:
+        value = per_light[k, 0]
+        for i in range(m):
+            scr[_U(row + i)] = value
+
+
 @serial_kernel
 def _light_terms(k, j0, m, lights, intensity, phase, scr):
     """Light k's direction, e_k p and e_k for the chunk's pixels into the scratch."""
@@ -152,20 +171,8 @@ def _light_terms(k, j0, m, lights, intensity, phase, scr):
         lx, ly, lz = lights[0, k, 0], lights[1, k, 0], lights[2, k, 0]
         for i in range(m):
             scr[_U(_LX + i)], scr[_U(_LY + i)], scr[_U(_LZ + i)] = lx, ly, lz
-    if phase.shape[1] > 1:
-        for i in range(m):
-            scr[_U(_G + i)] = phase[k, _U(j0 + i)]
-    else:
-        g = phase[k, 0]
-        for i in range(m):
-            scr[_U(_G + i)] = g
-    if intensity.shape[1] > 1:
-        for i in range(m):
-            scr[_U(_E + i)] = intensity[k, _U(j0 + i)]
-    else:
-        e = intensity[k, 0]
-        for i in range(m):
-            scr[_U(_E + i)] = e
+    _row_into_scratch(k, j0, m, phase, _G, scr)
+    _row_into_scratch(k, j0, m, intensity, _E, scr)
 
 
 @serial_kernel
@@ -248,8 +255,8 @@ def _model_sums(n, rho, j0, m, a, a_tau, neg_tau, values, usable, lights, intens
 def _steps(j0, m, sums, lam, consts, delta0, w):
     """Damped Gauss–Newton steps of the chunk's pixels (as the numpy backend's
     ``_block_step``): delta0 = Hd^-1 J^T r, w = Hd^-1 J^T P with Hd = H + lambda diag(H)
-    inverted by its adjugate; a (nearly) singular Hd gives a zero step and raises the
-    pixel's damping."""
+    inverted by its adjugate (:mod:`photometric.symmetric_solve`); a (nearly) singular Hd
+    gives a zero step and raises the pixel's damping."""
     up, top = consts[LAMBDA_UP], consts[LAMBDA_MAX]
     for i in range(m):
         j = _U(j0 + i)
@@ -260,13 +267,7 @@ def _steps(j0, m, sums, lam, consts, delta0, w):
         d1 = h11 + lj * max(h11, tiny)
         d2 = h22 + lj * max(h22, tiny)
         d3 = h33 + lj * max(h33, tiny)
-        a11 = d2 * d3 - h23 * h23
-        a12 = h13 * h23 - h12 * d3
-        a13 = h12 * h23 - h13 * d2
-        a22 = d1 * d3 - h13 * h13
-        a23 = h12 * h13 - d1 * h23
-        a33 = d1 * d2 - h12 * h12
-        det = d1 * a11 + h12 * a12 + h13 * a13
+        a11, a12, a13, a22, a23, a33, det = _adjugate(d1, h12, h13, d2, h23, d3)
         ok = det > _SINGULAR * d1 * d2 * d3
         inv = _F1 / det
         inv_det = inv if ok else _F0
@@ -274,12 +275,10 @@ def _steps(j0, m, sums, lam, consts, delta0, w):
         lam[j] = lj if ok else raised  # (nearly) singular: no step, more damping next time
         g1, g2, g3 = sums[6, j], sums[7, j], sums[8, j]
         c1, c2, c3 = sums[9, j], sums[10, j], sums[11, j]
-        delta0[0, j] = (a11 * g1 + a12 * g2 + a13 * g3) * inv_det
-        delta0[1, j] = (a12 * g1 + a22 * g2 + a23 * g3) * inv_det
-        delta0[2, j] = (a13 * g1 + a23 * g2 + a33 * g3) * inv_det
-        w[0, j] = (a11 * c1 + a12 * c2 + a13 * c3) * inv_det
-        w[1, j] = (a12 * c1 + a22 * c2 + a23 * c3) * inv_det
-        w[2, j] = (a13 * c1 + a23 * c2 + a33 * c3) * inv_det
+        delta0[0, j], delta0[1, j], delta0[2, j] = _adjugate_solve(
+            a11, a12, a13, a22, a23, a33, inv_det, g1, g2, g3)
+        w[0, j], w[1, j], w[2, j] = _adjugate_solve(
+            a11, a12, a13, a22, a23, a33, inv_det, c1, c2, c3)
 
 
 @serial_kernel
@@ -671,8 +670,7 @@ def finish(pix, n, rho, sums, counts, normals, albedo, rms, valid):
         for j in range(j0, j0 + m):
             h11, h12, h13 = float(sums[0, j]), float(sums[1, j]), float(sums[2, j])
             h22, h23, h33 = float(sums[3, j]), float(sums[4, j]), float(sums[5, j])
-            det = h11 * (h22 * h33 - h23 * h23) - h12 * (h12 * h33 - h13 * h23) + h13 * (
-                h12 * h23 - h13 * h22)
+            det = _adjugate(h11, h12, h13, h22, h23, h33)[6]
             ok = (det > 1e-9 * h11 * h22 * h33 and math.isfinite(n[0, j])
                   and math.isfinite(n[1, j]) and math.isfinite(n[2, j])
                   and math.isfinite(rho[j]))

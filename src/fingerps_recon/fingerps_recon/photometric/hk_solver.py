@@ -79,6 +79,7 @@ from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.hk_model import PhaseConvention, SkinParams, henyey_greenstein
 from fingerps_recon.photometric.kernel_threads import numba_threads, thread_limit
 from fingerps_recon.photometric.light_intensities import checked_intensities
+from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric_adjugate
 
 # 1/c_i and 1/c_r in the derivatives are capped at 1 / _DERIVATIVE_FLOOR.
 _DERIVATIVE_FLOOR = 1e-3
@@ -690,9 +691,10 @@ def _block_step(st: _State, sl: slice, *, fit: bool) -> tuple[float, ...]:
     """Damped Gauss–Newton step of a block's pixels (into ``st.delta0``, ``st.w``).
 
     Each pixel's 3x3 block H of J^T J is damped as H + lambda diag(H) (Marquardt) and
-    inverted in closed form (adjugate, float32); delta0 = Hd^-1 J^T r, w = Hd^-1 J^T P, and
-    the step for a change dA of A is delta0 - w dA. A (nearly) singular block gives a zero
-    step and raises its pixel's damping.
+    inverted in closed form (adjugate, float32; :mod:`photometric.symmetric_solve`);
+    delta0 = Hd^-1 J^T r, w = Hd^-1 J^T P, and the step for a change dA of A is
+    delta0 - w dA. A (nearly) singular block gives a zero step and raises its pixel's
+    damping.
     Returns the block's parts of the Schur complement on A: (P.r, (J^T P).delta0, P.P,
     (J^T P).w), or () if A is fixed.
     """
@@ -703,22 +705,15 @@ def _block_step(st: _State, sl: slice, *, fit: bool) -> tuple[float, ...]:
     d1 = h11 + lam * np.maximum(h11, tiny)
     d2 = h22 + lam * np.maximum(h22, tiny)
     d3 = h33 + lam * np.maximum(h33, tiny)
-    a11 = d2 * d3 - h23 * h23
-    a12 = h13 * h23 - h12 * d3
-    a13 = h12 * h23 - h13 * d2
-    a22 = d1 * d3 - h13 * h13
-    a23 = h12 * h13 - d1 * h23
-    a33 = d1 * d2 - h12 * h12
-    det = d1 * a11 + h12 * a12 + h13 * a13
+    a11, a12, a13, a22, a23, a33, det = symmetric_adjugate(d1, h12, h13, d2, h23, d3)
     ok = det > np.float32(1e-6) * d1 * d2 * d3
     inv_det = np.divide(np.float32(1.0), det, out=np.zeros_like(det), where=ok)
     if not ok.all():  # (nearly) singular: no step now, more damping next time
         lam[~ok] = np.minimum(lam[~ok] * np.float32(_LAMBDA_UP), np.float32(_LAMBDA_MAX))
 
     def solve(r1: np.ndarray, r2: np.ndarray, r3: np.ndarray, out: np.ndarray) -> np.ndarray:
-        np.multiply((a11 * r1 + a12 * r2 + a13 * r3), inv_det, out=out[0])
-        np.multiply((a12 * r1 + a22 * r2 + a23 * r3), inv_det, out=out[1])
-        np.multiply((a13 * r1 + a23 * r2 + a33 * r3), inv_det, out=out[2])
+        out[0], out[1], out[2] = adjugate_solve(a11, a12, a13, a22, a23, a33, inv_det, r1, r2,
+                                                r3)
         return out
 
     delta0 = solve(s[_G1], s[_G2], s[_G3], st.delta0[:, sl])
@@ -833,9 +828,7 @@ def _determined(sums: np.ndarray) -> np.ndarray:
     """Pixels whose 3x3 J^T J (sums (15, N)) is non-singular: their solution is determined
     (not, e.g., every usable light in attached shadow at the normal found)."""
     h11, h12, h13, h22, h23, h33 = (sums[i] for i in (_H11, _H12, _H13, _H22, _H23, _H33))
-    det = h11 * (h22 * h33 - h23 * h23) - h12 * (h12 * h33 - h13 * h23) + h13 * (
-        h12 * h23 - h13 * h22
-    )
+    det = symmetric_adjugate(h11, h12, h13, h22, h23, h33)[6]
     return det > 1e-9 * h11 * h22 * h33
 
 

@@ -2,7 +2,8 @@
 
 Paper Eq. 3 (NOTES §2): per pixel, I_k = e_k rho (l_k . n) over the lights k usable there;
 with a_k = e_k l_k, the 3x3 normal equations A b = r, A = sum_k a_k a_k^T, r = sum_k a_k I_k,
-give b = rho n = A^-1 r, solved in closed form by the adjugate of the symmetric A.
+give b = rho n = A^-1 r, solved in closed form by the adjugate of the symmetric A
+(:mod:`photometric.symmetric_solve`).
 
 One kernel, :func:`solve`, for distant lights (one direction and intensity per light) and
 near lights (one per light and pixel): the image rectangle is cut into chunks of at most
@@ -38,6 +39,7 @@ import numpy as np
 from numba import prange
 
 from fingerps_recon.photometric.kernel_compile import inline_kernel, parallel_kernel
+from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric_adjugate
 
 # Pixels per chunk (a chunk's nine float32 sums, its scratch and its pixels' inputs stay in
 # the core's L1/L2 cache, whatever the number of lights).
@@ -57,6 +59,10 @@ _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
 _THIRD = np.float32(1.0 / 3.0)
 _INF = np.float32(np.inf)
+
+# The symmetric 3x3 solve by the adjugate (photometric.symmetric_solve), inlined.
+_adjugate = inline_kernel(symmetric_adjugate)
+_adjugate_solve = inline_kernel(adjugate_solve)
 
 
 @inline_kernel
@@ -151,21 +157,14 @@ def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
         a_xx, a_xy, a_xz = acc[_U(_AXX + i)], acc[_U(_AXY + i)], acc[_U(_AXZ + i)]
         a_yy, a_yz, a_zz = acc[_U(_AYY + i)], acc[_U(_AYZ + i)], acc[_U(_AZZ + i)]
         r_x, r_y, r_z = acc[_U(_RX + i)], acc[_U(_RY + i)], acc[_U(_RZ + i)]
-        # Cofactors of the symmetric A; A^-1 = C / det(A).
-        c_xx = a_yy * a_zz - a_yz * a_yz
-        c_xy = a_xz * a_yz - a_xy * a_zz
-        c_xz = a_xy * a_yz - a_xz * a_yy
-        c_yy = a_xx * a_zz - a_xz * a_xz
-        c_yz = a_xy * a_xz - a_xx * a_yz
-        c_zz = a_xx * a_yy - a_xy * a_xy
-        det = a_xx * c_xx + a_xy * c_xy + a_xz * c_xz
+        # A^-1 = adj(A) / det(A)
+        c_xx, c_xy, c_xz, c_yy, c_yz, c_zz, det = _adjugate(a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
         trace = (a_xx + a_yy + a_zz) * _THIRD
         solved = (acc[_U(_CNT + i)] >= np.float32(3.0)) & (
             det > min_det * trace * trace * trace)
         inv_det = _F1 / det if solved else _F0
-        bx = (c_xx * r_x + c_xy * r_y + c_xz * r_z) * inv_det
-        by = (c_xy * r_x + c_yy * r_y + c_yz * r_z) * inv_det
-        bz = (c_xz * r_x + c_yz * r_y + c_zz * r_z) * inv_det
+        bx, by, bz = _adjugate_solve(c_xx, c_xy, c_xz, c_yy, c_yz, c_zz, inv_det, r_x, r_y,
+                                     r_z)
         rho = np.sqrt(bx * bx + by * by + bz * bz)
         ok = solved & (rho > _F0) & (rho < _INF)
         inv_rho = _F1 / rho if ok else _F0
