@@ -10,12 +10,12 @@ import pytest
 
 from fingerps_calib.calib_parameters import (
     check_camera_name,
-    check_finite,
     check_reference_point,
     check_sphere_radius,
     default_calibration_dir,
 )
 from fingerps_calib.calibration_keeper import CalibrationSettings
+from fingerps_ros.parameter_table import check_finite
 
 
 def test_reference_point():

@@ -16,8 +16,9 @@ from rclpy.node import Node
 from fingerps_calib.calibration_keeper import CalibrationSettings
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.lights.sphere_calibration import RADIUS_RANGE_M, check_radius
+from fingerps_recon.reconstruction.parameters import MONO16_FULL_SCALE
 from fingerps_ros.node_runner import StartupError
-from fingerps_ros.parameter_table import ParameterRow
+from fingerps_ros.parameter_table import ParameterRow, check_finite
 from fingerps_ros.parameters import ParameterChecks, declare_parameters
 
 _DEFAULTS = CalibrationSettings()
@@ -58,15 +59,6 @@ def check_sphere_radius(value: object) -> str | None:
         return (f"must be a finite radius in metres between {lo:g} and {hi:g} "
                 f"({1e3 * lo:g}-{1e3 * hi:g} mm), e.g. 0.004 for a ball of 8 mm")
     return None
-
-
-def check_finite(value: object) -> str | None:
-    """A finite number, or the reason not."""
-    try:
-        finite = math.isfinite(float(value))
-    except (TypeError, ValueError):
-        finite = False
-    return None if finite else "must be a finite number"
 
 
 CALIB_PARAMETERS = (
@@ -110,10 +102,7 @@ CALIB_PARAMETERS = (
         "The sphere centre must lie within this fraction of the reference point's "
         "distance from the camera (a wrong sphere radius shows as a wrong distance)",
         min_value=0.05, max_value=0.9, check=check_finite),
-    ParameterRow(
-        "mono16_full_scale", _DEFAULTS.mono16_full_scale,
-        "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
-        max_value=65535.0, check=check_finite),
+    MONO16_FULL_SCALE,
 )
 """calib_node's parameter table, in the order they are declared."""
 

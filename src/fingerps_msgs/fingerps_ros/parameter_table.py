@@ -9,6 +9,7 @@ node's table.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -49,3 +50,12 @@ def one_of(*choices: str) -> Check:
     def check(value: Any) -> str | None:
         return None if value in choices else f"must be one of {', '.join(choices)}"
     return check
+
+
+def check_finite(value: object) -> str | None:
+    """A check accepting only a finite number."""
+    try:
+        finite = math.isfinite(float(value))  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        finite = False
+    return None if finite else "must be a finite number"
