@@ -38,7 +38,13 @@ import numba
 import numpy as np
 from numba import prange
 
-from fingerps_recon.photometric.kernel_compile import inline_kernel, parallel_kernel, serial_kernel
+from fingerps_recon.photometric import symmetric_solve
+from fingerps_recon.photometric.kernel_compile import (
+    drop_stale_caches,
+    inline_kernel,
+    parallel_kernel,
+    serial_kernel,
+)
 from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric_adjugate
 
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
@@ -680,3 +686,7 @@ def finish(pix, n, rho, sums, counts, normals, albedo, rms, valid):
                 albedo[p] = rho[j]
                 rms[p] = math.sqrt(max(float(sums[14, j]), 0.0) / counts[j])
                 valid[p] = True
+
+
+# After an edit of symmetric_solve, the cached kernels that inline it are compiled anew.
+drop_stale_caches(globals(), inlined=(symmetric_solve,))

@@ -12,7 +12,9 @@ compiled in every process, and a warning says how to give it one.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from types import ModuleType
 
 import numba
 
@@ -44,3 +46,27 @@ def inline_kernel(fn: Callable) -> Callable:
     """Scalar arithmetic or a part of a kernel inlined into its caller (numba IR): no call
     per chunk or pixel, and loops that LLVM still vectorises."""
     return _compile(fn, inline="always")
+
+
+def drop_stale_caches(kernels: dict[str, object], inlined: Iterable[ModuleType]) -> int:
+    """Delete the on-disk cache of the kernels among ``kernels`` (a module's ``globals()``)
+    that is older than a module whose functions they inline; return how many files.
+
+    Numba keys a kernel's cache to the kernel's own source and bytecode: after an edit of an
+    inlined module (e.g. ``symmetric_solve``) alone, the old machine code would be loaded.
+    Called at the import of each kernel module, before any kernel runs (a few stat calls)."""
+    newest = max((Path(module.__file__).stat().st_mtime for module in inlined
+                  if module.__file__), default=0.0)
+    dropped = 0
+    for kernel in kernels.values():
+        cache_file = getattr(getattr(kernel, "_cache", None), "_cache_file", None)
+        index = Path(getattr(cache_file, "_index_path", "") or "")
+        try:
+            stale = index.suffix == ".nbi" and index.stat().st_mtime < newest
+        except OSError:  # not cached yet
+            continue
+        if stale:
+            for path in (index, *index.parent.glob(index.name[:-len(".nbi")] + ".*.nbc")):
+                path.unlink(missing_ok=True)
+                dropped += 1
+    return dropped

@@ -38,7 +38,12 @@ import numba
 import numpy as np
 from numba import prange
 
-from fingerps_recon.photometric.kernel_compile import inline_kernel, parallel_kernel
+from fingerps_recon.photometric import symmetric_solve
+from fingerps_recon.photometric.kernel_compile import (
+    drop_stale_caches,
+    inline_kernel,
+    parallel_kernel,
+)
 from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric_adjugate
 
 # Pixels per chunk (a chunk's nine float32 sums, its scratch and its pixels' inputs stay in
@@ -255,3 +260,7 @@ def solve(images, lights, intensity, mask, box, lo, hi, min_det, normals, albedo
         _accumulate(images, lights, intensity, mask, r, start, m, lo, hi, scr, acc)
         _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used)
         _misfit(images, lights, intensity, r, start, m, lo, hi, scr, acc, parts, chunk)
+
+
+# After an edit of symmetric_solve, the cached kernels that inline it are compiled anew.
+drop_stale_caches(globals(), inlined=(symmetric_solve,))

@@ -23,10 +23,9 @@ The functions are only + - * on their arguments, so the same source serves
 - the numpy solver, on arrays, element-wise: the results have the arguments' dtype
   (float32 in, float32 out), bit for bit as the kernels' scalars.
 
-No numba here: the numpy solver works without it. Numba's on-disk cache of a kernel is
-keyed to the kernel's own source file; after an edit here the cached kernels that inline
-these functions are not recompiled: delete their cache (``*.nbi``, ``*.nbc`` in the
-``__pycache__`` beside them or under ``NUMBA_CACHE_DIR``) or touch their files.
+No numba here: the numpy solver works without it. Numba keys a kernel's on-disk cache to
+the kernel's own source file, so the kernel modules drop their cache when it is older than
+this file (:func:`photometric.kernel_compile.drop_stale_caches`).
 """
 
 from __future__ import annotations

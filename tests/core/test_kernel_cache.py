@@ -1,0 +1,59 @@
+"""Numba's cache of a kernel is dropped when a module it inlines is newer (kernel_compile)."""
+
+import os
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+from fingerps_recon.photometric.kernel_compile import drop_stale_caches
+
+
+def _kernel_cached_at(index: Path) -> object:
+    cache_file = types.SimpleNamespace(_index_path=str(index))
+    return types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_file=cache_file))
+
+
+def test_a_cache_older_than_an_inlined_module_is_dropped_and_a_newer_one_kept(tmp_path):
+    old = tmp_path / "kernel.solve-10.py311.nbi"
+    new = tmp_path / "kernel.other-20.py311.nbi"
+    old_data = [tmp_path / f"kernel.solve-10.py311.{i}.nbc" for i in (1, 2)]
+    for path in (old, new, *old_data, tmp_path / "kernel.other-20.py311.1.nbc"):
+        path.write_bytes(b"x")
+    inlined = tmp_path / "inlined.py"
+    inlined.write_text("")
+    os.utime(old, (1000, 1000))
+    os.utime(inlined, (2000, 2000))
+    os.utime(new, (3000, 3000))
+    module = types.ModuleType("inlined")
+    module.__file__ = str(inlined)
+    kernels = {"solve": _kernel_cached_at(old), "other": _kernel_cached_at(new),
+               "not_a_kernel": 3, "uncached": _kernel_cached_at(tmp_path / "none.nbi")}
+
+    assert drop_stale_caches(kernels, inlined=(module,)) == 3
+    assert not old.exists() and not any(p.exists() for p in old_data)
+    assert new.exists() and (tmp_path / "kernel.other-20.py311.1.nbc").exists()
+    assert drop_stale_caches(kernels, inlined=(module,)) == 0
+
+
+def test_the_kernels_recompile_after_an_edit_of_symmetric_solve(tmp_path):
+    """Real numba: kernels cached under NUMBA_CACHE_DIR, then symmetric_solve made newer
+    (as an edit would): the next process drops those caches and compiles again."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    run = ("import numpy as np\n"
+           "from fingerps_recon.photometric import lambertian_kernel as k, symmetric_solve\n"
+           "print(k.drop_stale_caches(vars(k), inlined=(symmetric_solve,)))\n"
+           "m = np.float32\n"
+           "print(k._adjugate.py_func(m(2), m(0), m(0), m(2), m(0), m(2))[6])\n")
+    # Compile the jitted adjugate into the cache, then age the cache below the source.
+    warm = run + "k._adjugate(m(2), m(0), m(0), m(2), m(0), m(2))\n"
+    subprocess.run([sys.executable, "-c", warm], env=env, check=True, capture_output=True)
+    indexes = list((tmp_path / "cache").rglob("*.nbi"))
+    assert indexes, "numba wrote no cache"
+    for index in indexes:
+        os.utime(index, (1000, 1000))
+    out = subprocess.run([sys.executable, "-c", run], env=env, check=True,
+                         capture_output=True, text=True).stdout.split()
+    # The module's import already dropped them (its own call then finds none left).
+    assert out[0] == "0"
+    assert not any(index.exists() for index in indexes)
