@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 import pytest
+from led_history import masks_lit_since
 
 from fingerps_driver.board.board_emulator import BoardEmulator, Fault
 from fingerps_driver.board.led_board import LedBoard
@@ -60,13 +61,6 @@ def _burst(rig, burst_id=1, **options) -> BurstResult:
     return capture_burst(rig.board, rig.camera, burst_id=burst_id, **kwargs)
 
 
-def _masks_since(emulator, start):
-    """The masks lit since ``start``, in order. A switch the board re-sent because its reply
-    came late (LedBoard retries an idempotent command) lights the same mask again: one step."""
-    masks = [mask for t, mask in emulator.history if t >= start]
-    return [m for i, m in enumerate(masks) if i == 0 or m != masks[i - 1]]
-
-
 def test_simulated_camera_is_a_camera(rig):
     assert isinstance(rig.camera, Camera)
 
@@ -88,7 +82,7 @@ def test_burst_frames_are_tagged_with_the_led_actually_lit(rig):
     assert result.dark.led_index == DARK_LED
     assert np.all(result.dark.image == 0) and result.dark.level == 0.0
     # the emulator switched exactly one LED at a time, in order, then all off
-    assert _masks_since(rig.emulator, start) == [1 << i for i in LEDS] + [0]
+    assert masks_lit_since(rig.emulator.history, start) == [1 << i for i in LEDS] + [0]
     assert rig.emulator.lit_mask == 0
     print(f"\nburst of 7 frames + dark over the pty: {result.duration_s * 1e3:.1f} ms")
     assert result.duration_s < 1.0  # ~5 ms when idle; the 0.2 s budget is not a CI bound
@@ -105,7 +99,7 @@ def test_order_levels_and_exposures_are_applied_and_tagged(rig):
     assert [f.exposure_s for f in result.frames] == [0.01, 0.02, 0.03]
     assert [f.level for f in result.frames] == [128 / 255, 1.0, 64 / 255]
     assert rig.emulator.levels == (255, 255, 64, 255, 128, 255, 255)
-    assert _masks_since(rig.emulator, start) == [16, 1, 4, 0]
+    assert masks_lit_since(rig.emulator.history, start) == [16, 1, 4, 0]
 
 
 def test_the_first_led_is_repeated_after_the_last_when_asked(rig):
@@ -118,7 +112,7 @@ def test_the_first_led_is_repeated_after_the_last_when_asked(rig):
     assert repeat is not None and repeat.led_index == 4 and repeat.exposure_s == 0.01
     assert np.all(repeat.image == 16)  # LED 4 was lit again when the camera grabbed
     assert result.frames[-1].stamp_ns <= repeat.stamp_ns <= result.dark.stamp_ns
-    assert _masks_since(rig.emulator, start) == [16, 1, 4, 16, 0]
+    assert masks_lit_since(rig.emulator.history, start) == [16, 1, 4, 16, 0]
     assert _burst(rig).repeat is None
 
 
@@ -143,7 +137,7 @@ def test_fault_mid_burst_fails_it_and_the_next_burst_is_fine(rig):
     result = _burst(rig, burst_id=2)
     assert result.ok, result.reason
     assert [int(f.image[0, 0]) for f in result.frames] == [1 << i for i in LEDS]
-    assert _masks_since(rig.emulator, start) == [1 << i for i in LEDS] + [0]
+    assert masks_lit_since(rig.emulator.history, start) == [1 << i for i in LEDS] + [0]
 
 
 def test_disconnect_mid_burst_fails_it_and_a_reconnected_board_works(rig):

@@ -6,6 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from led_history import masks_lit_since
 
 from fingerps_driver.board.board_emulator import BoardEmulator
 from fingerps_driver.board.led_board import LedBoard
@@ -47,7 +48,7 @@ def test_each_led_sees_its_listed_image_through_the_serial_path(tmp_path):
         assert [(f.led_index, int(f.image[0, 0])) for f in result.frames] == [
             (6, 70), (1, 20), (3, 40)]
         assert not result.dark.image.any()  # nothing lit: black
-        assert [m for t, m in emulator.history if t >= start] == [64, 2, 8, 0]
+        assert masks_lit_since(emulator.history, start) == [64, 2, 8, 0]
 
 
 def test_acknowledged_mask_of_a_real_board_drives_the_replay(tmp_path):

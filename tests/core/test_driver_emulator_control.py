@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+from led_history import masks_lit_since
 
 from fingerps_driver.board.board_emulator import BoardEmulatorControl, EmulatorControlServer, Fault
 from fingerps_driver.board.led_board import LedBoard
@@ -100,7 +101,7 @@ def test_deferred_power_cut_fails_the_burst_at_the_known_step(control, board, em
         time.sleep(0.01)
     assert not control.state()["connected"] and not os.path.exists(emulator.port)
     # the request was executed, then the board lost power
-    masks = [m for t, m in control.history() if t >= start]
+    masks = masks_lit_since(control.history(), start)
     assert masks == [1 << i for i in LEDS] + [0] + [1, 2, 4, 0]
     with pytest.raises(BoardNotFoundError):
         board.open()
@@ -112,7 +113,7 @@ def test_deferred_power_cut_fails_the_burst_at_the_known_step(control, board, em
     assert result.ok, result.reason
     assert [int(f.image[0, 0]) for f in result.frames] == [1 << f.led_index
                                                             for f in result.frames]
-    assert [m for t, m in control.history() if t >= start] == [1 << i for i in LEDS] + [0]
+    assert masks_lit_since(control.history(), start) == [1 << i for i in LEDS] + [0]
 
 
 def test_immediate_disconnect_and_errors_are_answered(control, board, tmp_path):
