@@ -52,7 +52,8 @@ from fingerps_ros.image_compression import (
     encode_compressed_depth,
 )
 from fingerps_ros.node_runner import StartupError
-from fingerps_ros.parameters import Check, ParameterChecks, descriptor
+from fingerps_ros.parameter_table import Check, ParameterRow
+from fingerps_ros.parameters import ParameterChecks, declare_parameters
 
 RAW = "image_transport/raw"
 COMPRESSED = "image_transport/compressed"
@@ -175,39 +176,43 @@ class CompressedTopics:
                 f"{self.last_problem} (logged once; further failures are only counted)")
 
     def _declare(self, checks: ParameterChecks, enabled_by_default: bool) -> None:
-        p = self._node.declare_parameter
         allowed = self._allowed()
-        enable = self._base + ".enable_pub_plugins"
-        enable_desc = descriptor(
+        rows = [ParameterRow(
+            self._base + ".enable_pub_plugins",
+            [RAW, self._transport] if enabled_by_default else [RAW],
             f"image_transport transports published for '{self.base_topic}', read at start. "
             f"{RAW} is always published (the other fingerps nodes read it); "
             f"{self._transport} adds '{self.topic}' (encoded only while subscribed)",
-            read_only=True, constraints=f"Supported values: [{', '.join(allowed)}]")
-        enable_desc.dynamic_typing = True  # [] (no companion) is typed as bytes by rclpy
-        p(enable, [RAW, self._transport] if enabled_by_default else [RAW], enable_desc)
+            read_only=True, constraints=f"Supported values: [{', '.join(allowed)}]",
+            dynamic_typing=True)]  # [] (no companion) is typed as bytes by rclpy
         if self._depth:
-            checks.add(self._name("format"), _format_check(DEPTH_FORMATS, "rvl"))
-            p(self._name("format"), DEPTH_FORMATS[0], descriptor(
-                "compressedDepth compression method", constraints="Supported values: [png]"))
-            p(self._name("depth_max"), DepthQuantization.depth_max_m, descriptor(
-                "Maximum depth value, metres: depths at or beyond it are sent as no depth "
-                "(NaN)", min_value=0.01, max_value=100.0))
-            p(self._name("depth_quantization"), DepthQuantization.depth_quantization,
-              descriptor(
-                  "z0 of the inverse-depth quantization A = z0 (z0 + 1): larger, finer steps "
-                  "(z^2 / A metres at depth z) and a nearer limit A / (65536 - B) moving "
-                  "out; the defaults keep 32.6-200 mm in steps of 3.2 um at 90 mm",
-                  min_value=1.0, max_value=150.0))
+            rows += [
+                ParameterRow(self._name("format"), DEPTH_FORMATS[0],
+                             "compressedDepth compression method",
+                             constraints="Supported values: [png]",
+                             check=_format_check(DEPTH_FORMATS, "rvl")),
+                ParameterRow(self._name("depth_max"), DepthQuantization.depth_max_m,
+                             "Maximum depth value, metres: depths at or beyond it are sent as "
+                             "no depth (NaN)", min_value=0.01, max_value=100.0),
+                ParameterRow(self._name("depth_quantization"),
+                             DepthQuantization.depth_quantization,
+                             "z0 of the inverse-depth quantization A = z0 (z0 + 1): larger, "
+                             "finer steps (z^2 / A metres at depth z) and a nearer limit "
+                             "A / (65536 - B) moving out; the defaults keep 32.6-200 mm in "
+                             "steps of 3.2 um at 90 mm", min_value=1.0, max_value=150.0)]
         else:
-            checks.add(self._name("format"), _format_check(COMPRESSED_FORMATS, "tiff"))
-            p(self._name("format"), COMPRESSED_FORMATS[0], descriptor(
-                "Compression method: png (lossless, keeps 16 bits) or jpeg (lossy, 8 bits)",
-                constraints="Supported values: [png, jpeg]"))
-            p(self._name("jpeg_quality"), 95, descriptor(
-                "Image quality for JPEG format", min_value=1, max_value=100, integer=True))
-        p(self._name("png_level"), 3, descriptor(
+            rows += [
+                ParameterRow(self._name("format"), COMPRESSED_FORMATS[0],
+                             "Compression method: png (lossless, keeps 16 bits) or jpeg "
+                             "(lossy, 8 bits)", constraints="Supported values: [png, jpeg]",
+                             check=_format_check(COMPRESSED_FORMATS, "tiff")),
+                ParameterRow(self._name("jpeg_quality"), 95, "Image quality for JPEG format",
+                             min_value=1, max_value=100, integer=True)]
+        rows.append(ParameterRow(
+            self._name("png_level"), 3,
             "Compression level for PNG format (zlib): higher, smaller and slower",
             min_value=0, max_value=9, integer=True))
+        declare_parameters(self._node, rows, checks=checks)
 
     def _allowed(self) -> tuple[str, ...]:
         return (RAW, self._transport)

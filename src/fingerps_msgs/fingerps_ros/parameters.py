@@ -97,7 +97,8 @@ class ParameterChecks:
 
 
 def declare_parameters(node: Node, rows: Iterable[ParameterRow], *,
-                       check_while_declaring: bool = True) -> ParameterChecks:
+                       check_while_declaring: bool = True,
+                       checks: ParameterChecks | None = None) -> ParameterChecks:
     """Declare ``rows`` on ``node`` in their order, each with its descriptor; return the
     checks (for more parameters, and ``refuse_unknown_overrides``).
 
@@ -106,9 +107,10 @@ def declare_parameters(node: Node, rows: Iterable[ParameterRow], *,
     on: a bad value given at start raises rclpy's ``InvalidParameterValueException``, which
     ``run_node`` reports in one line. With ``check_while_declaring=False`` the checks are
     added after the last row, for a node that names every bad start value at once
-    (``ParameterChecks.problems``).
+    (``ParameterChecks.problems``). ``checks``: the node's checks to add to (a part of a node
+    declaring its own rows, e.g. ``compressed_topics``), else new ones.
     """
-    checks = ParameterChecks(node)
+    checks = ParameterChecks(node) if checks is None else checks
     table = tuple(rows)
     for row in table:
         if check_while_declaring and row.check is not None:
