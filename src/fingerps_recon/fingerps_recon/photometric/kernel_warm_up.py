@@ -7,8 +7,8 @@ burst. :func:`warm_up_kernels` reconstructs a tiny synthetic burst through
 dtypes a camera gives -- so every kernel the pipeline calls is ready afterwards, and says
 how many were compiled and how many loaded from the cache.
 
-``make build`` runs this module (``python -m photometric.kernel_warm_up``) so that the
-cache is filled during the build; ``recon_node`` calls :func:`warm_up_kernels` in its
+``make build`` runs this module (``python -m fingerps_recon.photometric.kernel_warm_up``)
+so that the cache is filled during the build; ``recon_node`` calls :func:`warm_up_kernels` in its
 worker at start. Where the cache is: numba's rule (``__pycache__`` beside the kernels'
 sources when writable, else the user's cache directory, or ``NUMBA_CACHE_DIR``).
 """
@@ -117,7 +117,8 @@ def _synthetic_burst() -> tuple[np.ndarray, ...]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m photometric.kernel_warm_up``: warm the kernel cache, print one line."""
+    """``python -m fingerps_recon.photometric.kernel_warm_up``: warm the kernel cache, print
+    one line."""
     argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args(argv)
     print(f"fingerps_recon kernels: {warm_up_kernels().summary}", flush=True)
     return 0

@@ -146,7 +146,7 @@ def flat_field_maps(flat: FlatField, limits: BurstLimits) -> np.ndarray:
     if maps.ndim != 3:
         raise FingerpsReconError(
             f"flat-field maps of {flat.maps[0].encoding}: they must have one channel (32FC1)")
-    maps = maps.astype(np.float32)
+    maps = maps.astype(np.float32, copy=False)
     check_portions(maps)
     return maps
 

@@ -125,7 +125,6 @@ class ReconstructionWorker:
         self._refused: dict[str, str] = {}  # calibration kind -> why its last one was refused
         self._log_gate = LogGate()
         self.lights: LightCalibration | None = None
-        self._flat: FlatField | None = None
         self._flat_maps: np.ndarray | None = None
         self._camera: CameraInfo | None = None
         self.prepared = PreparedCalibrations()
@@ -148,7 +147,7 @@ class ReconstructionWorker:
         self.calibrations_refused += 1
         self._refused[kind] = reason
         self.last_problem = f"{kind} refused: {reason}"
-        held = self.lights if kind == "light calibration" else self._flat
+        held = self.lights if kind == "light calibration" else self._flat_maps
         self._log.error(f"{self.last_problem}; "
                         + ("the previous one stays in force" if held is not None
                            else "none is in force"))
@@ -171,7 +170,7 @@ class ReconstructionWorker:
         except FingerpsError as exc:
             self._refuse("flat field", str(exc))
             return
-        self._flat, self._flat_maps = msg, maps
+        self._flat_maps = maps
         self._refused.pop("flat field", None)
         self._log.info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
 

@@ -123,11 +123,6 @@ class SessionRecorder:
         self._unrecordable: set[str] = set()  # topics the bag refused (logged once)
         self._worker = threading.Thread(target=self._work, name="recorder_writer")
 
-    @property
-    def bag(self) -> SessionBagWriter:
-        """The bag written."""
-        return self._bag
-
     def start(self, metadata: Mapping[str, Mapping[str, str]]) -> None:
         """Make room in bags_dir, open the bag, write its metadata records, start writing.
 
