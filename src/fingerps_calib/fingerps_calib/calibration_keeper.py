@@ -269,9 +269,9 @@ class CalibrationKeeper:
     def _load_checked(self, what: str, load: Callable[[Path], _Record | None],
                       problems: Callable[[_Record], list[str]],
                       camera_name: str) -> _Record | None:
-        """The saved ``what`` if it loads, passes its checks and is of ``camera_name``."""
-        if self._dir is None:
-            return None
+        """The saved ``what`` if it loads, passes its checks and is of ``camera_name``
+        (``load_saved``: only with a calibration directory)."""
+        assert self._dir is not None
         try:
             record = load(self._dir)
         except FingerpsCalibError as exc:

@@ -24,7 +24,6 @@ from fingerps_driver.board.board_connection import (
 )
 from fingerps_driver.cameras.camera import Camera
 from fingerps_driver.cameras.camera_info_manager import CameraInfoManager
-from fingerps_driver.cameras.camera_opencv import OpenCvCamera
 from fingerps_driver.cameras.camera_setup import (
     CameraSettings,
     RigRenderer,
@@ -118,7 +117,7 @@ class DriverCore:
             self.calibration = open_calibration(
                 self.camera_settings, camera, self.renderer.rig if self.renderer else None,
                 node_name=node_name, image_topic=image_topic, log=self._log)
-            if isinstance(camera, OpenCvCamera) and camera.refused_settings:
+            if camera.refused_settings:
                 self._log.warning(
                     f"the camera refused {', '.join(camera.refused_settings)}; it runs with "
                     "its own values there")

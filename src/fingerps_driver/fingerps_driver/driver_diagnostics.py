@@ -62,14 +62,13 @@ def camera_status(node_name: str, core: DriverCore, compressed_failures: int) ->
     status.level = DiagnosticStatus.WARN if camera_failed_last else DiagnosticStatus.OK
     status.message = (f"last burst failed at the camera: {c.camera_error}"
                       if camera_failed_last else "ok")
-    refused = getattr(camera, "refused_settings", [])
     status.values = [
         KeyValue(key="backend", value=backend),
         KeyValue(key="device", value=device),
         KeyValue(key="size", value=f"{camera.width}x{camera.height}"),
         KeyValue(key="encoding", value=camera.encoding),
-        KeyValue(key="frames", value=str(getattr(camera, "frames_grabbed", ""))),
-        KeyValue(key="refused_settings", value=", ".join(refused)),
+        KeyValue(key="frames", value=str(camera.frames_grabbed)),
+        KeyValue(key="refused_settings", value=", ".join(camera.refused_settings)),
         KeyValue(key="compressed_failures", value=str(compressed_failures)),
         KeyValue(key="calibration",
                  value=core.calibration.current.source if core.calibration else ""),

@@ -95,7 +95,10 @@ class Command(Enum):
     @property
     def arg_count(self) -> int:
         """Arguments the command takes: ``LEDS`` a mask, ``LEVEL`` an index and a level."""
-        return {"LEDS": 1, "LEVEL": 2}.get(self.value, 0)
+        return _ARG_COUNT.get(self, 0)
+
+
+_ARG_COUNT = {Command.LEDS: 1, Command.LEVEL: 2}
 
 
 class ErrorCode(Enum):

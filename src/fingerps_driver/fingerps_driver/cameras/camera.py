@@ -38,7 +38,7 @@ class ExposureControl(Protocol):
         """Use ``exposure_s`` seconds from the next frame on.
 
         Raises ``CameraError`` if the camera fails; a backend may instead record a setting
-        the device refuses and go on (``OpenCvCamera.refused_settings``).
+        the device refuses and go on (``refused_settings``).
         """
         ...
 
@@ -135,6 +135,9 @@ class Camera(Device):
         self._encoding = encoding
         self.frames_grabbed = 0
         """Frames returned by ``grab`` since construction."""
+        self.refused_settings: list[str] = []
+        """Settings the device refused (``"fps=60"``...), kept for the caller to report; only
+        a backend that goes on after a refusal (``OpenCvCamera``) adds to it."""
 
     @property
     def width(self) -> int:

@@ -120,8 +120,6 @@ class OpenCvCamera(Camera):
         self._factory = capture_factory
         self._capture: Any = None
         self._timeout_ms = 0.0
-        self.refused_settings: list[str] = []
-        """Settings the backend refused at ``open`` or later (``"fps=60"``...)."""
 
     @property
     def is_open(self) -> bool:

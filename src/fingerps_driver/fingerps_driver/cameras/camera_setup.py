@@ -55,6 +55,11 @@ class SimSettings:
     motion_px: tuple[float, float] = (0.0, 0.0)
     motion_bursts: int = 0
 
+    @property
+    def encoding(self) -> str:
+        """The simulated camera's pixel format, by ``bit_depth``."""
+        return "mono8" if self.bit_depth == 8 else "mono16"
+
 
 @dataclass(frozen=True)
 class CameraSettings:
@@ -160,8 +165,7 @@ def make_camera(settings: CameraSettings, lit_leds: Callable[[], Sequence[int]],
         renderer = _make_renderer(settings, emulated=emulated)
         config = renderer.rig.config
         camera = SimulatedCamera(renderer.render, lit_leds, width=config.width,
-                                 height=config.height,
-                                 encoding="mono8" if config.bit_depth == 8 else "mono16")
+                                 height=config.height, encoding=settings.sim.encoding)
         return camera, renderer
     if settings.backend is CameraBackend.FOLDER:
         if not settings.folder:
@@ -178,7 +182,7 @@ def make_camera(settings: CameraSettings, lit_leds: Callable[[], Sequence[int]],
 
 def _make_renderer(settings: CameraSettings, *, emulated: bool) -> RigRenderer:
     sim = settings.sim
-    encoding = "mono8" if sim.bit_depth == 8 else "mono16"
+    encoding = sim.encoding
     if settings.pixel_format and settings.pixel_format != encoding:
         raise FingerpsDriverError(
             f"camera_pixel_format {settings.pixel_format} does not match sim.bit_depth "
