@@ -27,19 +27,22 @@ from rclpy.client import Client
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import Header, String
+from std_msgs.msg import String
 
 from fingerps_msgs.action import Scan
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_recon.errors import FingerpsReconError, ScanAbortedError
-from fingerps_recon.photometric.frames import ps_to_optical
-from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import ReconstructionOptions, full_scale_of
 from fingerps_recon.reconstruction.burst_reconstruction import (
     BurstReconstruction,
     PreparedCalibrations,
     reconstruct_burst,
+)
+from fingerps_recon.reconstruction.outputs import (
+    fingerprint_message,
+    normal_map_array,
+    normals_array,
 )
 from fingerps_recon.scan.scan_sequence import (
     GoalEnd,
@@ -55,7 +58,7 @@ from fingerps_recon.scan.scan_settings import (
 )
 from fingerps_ros import qos, topics
 from fingerps_ros.errors import FingerpsError
-from fingerps_ros.image_conversion import array_to_image, image_to_array
+from fingerps_ros.image_conversion import array_to_image, image_to_array, images_to_array
 from fingerps_ros.node_runner import run_node
 from fingerps_ros.parameters import declare_parameters
 from fingerps_ros.point_cloud_conversion import points_to_cloud
@@ -144,8 +147,7 @@ class ScanNode(Node):
 
     def _on_flat(self, msg: FlatField) -> None:
         try:
-            self._flat_maps = np.stack([image_to_array(m) for m in msg.maps]).astype(
-                np.float32)
+            self._flat_maps = images_to_array(list(msg.maps)).astype(np.float32, copy=False)
         except (FingerpsError, ValueError) as exc:
             self.get_logger().error(f"flat field refused: {exc}")
 
@@ -184,16 +186,12 @@ class ScanNode(Node):
         rec, header, f = outcome.made.result, outcome.burst.source.header, outcome.verdict.figures
         result.success, result.accepted = True, outcome.accepted
         result.reasons, result.message = list(outcome.reasons), outcome.message
-        result.normals = array_to_image(ps_to_optical(rec.normals_ps, dtype=np.float32),
-                                        encoding="32FC3", header=header)
-        shown = rec.enhanced_ps if rec.enhanced_ps is not None else rec.normals_ps
-        result.normal_map = array_to_image(normal_map_rgb(shown, mask=rec.mask),
-                                           encoding="rgb8", header=header)
+        result.normals = array_to_image(normals_array(rec), encoding="32FC3", header=header)
+        result.normal_map = array_to_image(normal_map_array(rec), encoding="rgb8",
+                                           header=header)
         result.points = points_to_cloud(rec.points_optical, rec.point_albedo, header=header)
         if outcome.fingerprint is not None:
-            result.fingerprint = array_to_image(
-                outcome.fingerprint, encoding="mono8",
-                header=Header(stamp=header.stamp, frame_id=topics.FINGERPRINT_FRAME))
+            result.fingerprint = fingerprint_message(outcome.fingerprint, header.stamp)
         result.finger_coverage, result.saturated_fraction = f.coverage, f.saturated_fraction
         result.dark_fraction, result.ridge_visibility = f.dark_fraction, f.ridge_visibility
         result.motion_px, result.motion_correlation = f.motion_px, f.motion_correlation

@@ -38,6 +38,7 @@ from fingerps_recon.surface.integration import (
     integrate_normals,
     integrate_normals_perspective,
 )
+from fingerps_ros.parameter_table import ParameterRow, check_finite
 
 # Smallest cosine between a near light and the white target's normal used to turn the
 # target's brightness into irradiance (a steeper light would amplify the target's noise).
@@ -74,6 +75,14 @@ def full_scale_of(encoding: str, *, mono16_full_scale: float = 4095.0) -> float:
     """The ``full_scale`` to reconstruct images of ``encoding`` with: ``mono16_full_scale``
     for mono16, else the encoding's `FULL_SCALE` (255 for an encoding not listed)."""
     return mono16_full_scale if encoding == "mono16" else FULL_SCALE.get(encoding, 255.0)
+
+
+MONO16_FULL_SCALE = ParameterRow(
+    "mono16_full_scale", FULL_SCALE["mono16"],
+    "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
+    max_value=65535.0, check=check_finite)
+"""The ``mono16_full_scale`` parameter of every node that reads mono16 images (recon_node,
+scan_node, calib_node): one row of their tables (``fingerps_ros.parameter_table``)."""
 
 @dataclass(frozen=True)
 class ReconstructionOptions:

@@ -42,11 +42,10 @@ def output_messages(result: Reconstruction, header: Header) -> Iterator[Output]:
     """The outputs of one burst with the burst's ``header``, in :data:`OUTPUT_TOPICS`'s
     order: the normals (32FC3, optical frame), the normal map (rgb8, of the enhanced normals
     if there are any), depth and albedo (32FC1), the points (x y z intensity)."""
-    normals_optical = ps_to_optical(result.normals_ps, dtype=np.float32)
+    normals_optical = normals_array(result)
     yield Output(topics.NORMALS, array_to_image(normals_optical, encoding="32FC3",
                                                 header=header), normals_optical, "32FC3")
-    shown = result.enhanced_ps if result.enhanced_ps is not None else result.normals_ps
-    rgb = normal_map_rgb(shown, mask=result.mask)
+    rgb = normal_map_array(result)
     yield Output(topics.NORMAL_MAP, array_to_image(rgb, encoding="rgb8", header=header), rgb,
                  "rgb8")
     for topic, image in ((topics.DEPTH, result.depth_m), (topics.ALBEDO, result.albedo)):
@@ -54,6 +53,18 @@ def output_messages(result: Reconstruction, header: Header) -> Iterator[Output]:
                      "32FC1")
     yield Output(topics.POINTS, points_to_cloud(result.points_optical, result.point_albedo,
                                                 header=header), None, "")
+
+
+def normals_array(result: Reconstruction) -> np.ndarray:
+    """The ``normals`` output: the unit normals in the optical frame, (H, W, 3) float32."""
+    return ps_to_optical(result.normals_ps, dtype=np.float32)
+
+
+def normal_map_array(result: Reconstruction) -> np.ndarray:
+    """The ``normal_map`` output, (H, W, 3) uint8 RGB: of the enhanced normals if there are
+    any (Eq. 12), else of the normals."""
+    shown = result.enhanced_ps if result.enhanced_ps is not None else result.normals_ps
+    return normal_map_rgb(shown, mask=result.mask)
 
 
 def fingerprint_message(image: np.ndarray, stamp: Time) -> Image:

@@ -7,17 +7,15 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from fingerps_recon.photometric.kernel_threads import set_thread_limit
-from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
+from fingerps_recon.photometric.pipeline import (
+    MONO16_FULL_SCALE,
+    Model,
+    Projection,
+    ReconstructionOptions,
+)
 from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.worker import ReconSettings
-from fingerps_ros.parameter_table import ParameterRow, check_finite, one_of
-
-MONO16_FULL_SCALE = ParameterRow(
-    "mono16_full_scale", 4095.0,
-    "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
-    max_value=65535.0, check=check_finite)
-"""The full scale of mono16 images (photometric.pipeline.full_scale_of): the same parameter
-of recon_node and calib_node."""
+from fingerps_ros.parameter_table import ParameterRow, one_of
 
 PARAMETERS = (
     ParameterRow(

@@ -17,7 +17,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from fingerps_recon.errors import ImpossibleGoalError
-from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
+from fingerps_recon.photometric.pipeline import (
+    MONO16_FULL_SCALE,
+    Model,
+    Projection,
+    ReconstructionOptions,
+)
 from fingerps_recon.scan.quality import QualityThresholds
 from fingerps_ros.parameter_table import ParameterRow, one_of
 
@@ -50,7 +55,7 @@ SCAN_PARAMETERS: tuple[ParameterRow, ...] = (
     ParameterRow("k", 2.5, "Ridge enhancement gain", 0.0, 20.0),
     ParameterRow("working_distance", 0.09,
                  "Camera-to-finger distance, metres (metric scale of depth)", 0.005, 2.0),
-    ParameterRow("mono16_full_scale", 4095.0, "Largest value of a mono16 image", 1.0, 65535.0),
+    MONO16_FULL_SCALE,
     ParameterRow("timeout", 30.0, "Seconds a goal may take when it gives timeout 0",
                  0.1, 3600.0),
     ParameterRow("capture_timeout", 10.0,
