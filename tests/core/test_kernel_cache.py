@@ -57,3 +57,11 @@ def test_the_kernels_recompile_after_an_edit_of_symmetric_solve(tmp_path):
     # The module's import already dropped them (its own call then finds none left).
     assert out[0] == "0"
     assert not any(index.exists() for index in indexes)
+
+
+def test_the_modules_a_kernel_module_inlines_are_found_from_its_kernels():
+    from fingerps_recon.photometric import hk_kernel, lambertian_kernel, symmetric_solve
+    from fingerps_recon.photometric.kernel_compile import inlined_modules
+
+    for module in (hk_kernel, lambertian_kernel):
+        assert inlined_modules(vars(module)) == [symmetric_solve]

@@ -11,6 +11,7 @@ compiled in every process, and a warning says how to give it one.
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -48,13 +49,26 @@ def inline_kernel(fn: Callable) -> Callable:
     return _compile(fn, inline="always")
 
 
-def drop_stale_caches(kernels: dict[str, object], inlined: Iterable[ModuleType]) -> int:
+def inlined_modules(kernels: dict[str, object]) -> list[ModuleType]:
+    """The modules, other than the one of ``kernels`` (a module's ``globals()``), whose
+    functions it compiles (``inline_kernel(imported_function)``)."""
+    own = kernels.get("__name__")
+    names = {getattr(getattr(kernel, "py_func", None), "__module__", own)
+             for kernel in kernels.values() if isinstance(kernel, numba.core.dispatcher.Dispatcher)}
+    return [sys.modules[name] for name in sorted(names - {own}) if name in sys.modules]
+
+
+def drop_stale_caches(kernels: dict[str, object],
+                      inlined: Iterable[ModuleType] | None = None) -> int:
     """Delete the on-disk cache of the kernels among ``kernels`` (a module's ``globals()``)
-    that is older than a module whose functions they inline; return how many files.
+    that is older than a module whose functions they inline (``inlined``; by default
+    :func:`inlined_modules`); return how many files.
 
     Numba keys a kernel's cache to the kernel's own source and bytecode: after an edit of an
     inlined module (e.g. ``symmetric_solve``) alone, the old machine code would be loaded.
     Called at the import of each kernel module, before any kernel runs (a few stat calls)."""
+    if inlined is None:
+        inlined = inlined_modules(kernels)
     newest = max((Path(module.__file__).stat().st_mtime for module in inlined
                   if module.__file__), default=0.0)
     dropped = 0

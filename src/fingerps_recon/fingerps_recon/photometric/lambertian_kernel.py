@@ -38,7 +38,6 @@ import numba
 import numpy as np
 from numba import prange
 
-from fingerps_recon.photometric import symmetric_solve
 from fingerps_recon.photometric.kernel_compile import (
     drop_stale_caches,
     inline_kernel,
@@ -262,5 +261,6 @@ def solve(images, lights, intensity, mask, box, lo, hi, min_det, normals, albedo
         _misfit(images, lights, intensity, r, start, m, lo, hi, scr, acc, parts, chunk)
 
 
-# After an edit of symmetric_solve, the cached kernels that inline it are compiled anew.
-drop_stale_caches(globals(), inlined=(symmetric_solve,))
+# After an edit of a module whose functions the kernels inline (symmetric_solve), the
+# cached kernels are compiled anew.
+drop_stale_caches(globals())
