@@ -13,7 +13,6 @@ Target: publishing adds <= 20 ms per burst.
 from __future__ import annotations
 
 import os
-import random
 import statistics
 import subprocess
 import sys
@@ -22,16 +21,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ament_index_python.packages import get_package_prefix
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import CameraInfo, Image
 
+from fingerps_driver.demo import executable
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import qos, topics
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from graph_harness import bench_node
+from ros_domain import own_ros_domain
 
 BURSTS = 30
 WARM_UP = 2
@@ -39,12 +39,16 @@ NS = "/" + topics.NAMESPACE
 
 
 def run() -> dict[str, float]:
-    domain = random.randint(1, 101)
+    with own_ros_domain() as domain:
+        return _run_in(domain)
+
+
+def _run_in(domain: int) -> dict[str, float]:
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain),
            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
-    exe = Path(get_package_prefix("fingerps_driver")) / "lib/fingerps_driver/driver_node"
+    exe = executable("fingerps_driver", "driver_node")
     with tempfile.TemporaryFile() as log:
-        driver = subprocess.Popen([str(exe)], env=env, stdout=log, stderr=subprocess.STDOUT,
+        driver = subprocess.Popen([exe], env=env, stdout=log, stderr=subprocess.STDOUT,
                                   start_new_session=True)
         try:
             return _measure(domain, driver)

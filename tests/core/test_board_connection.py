@@ -56,14 +56,7 @@ class Clock:
         return self.now
 
 
-def _emulator_threads() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name == "board-emulator"]
-
-
-@pytest.fixture(autouse=True)
-def _no_threads_left_behind():
-    yield
-    assert _emulator_threads() == []
+pytestmark = pytest.mark.usefixtures("no_emulator_threads_left")
 
 
 def _connection(settings: BoardSettings, log: Mock, timers: Timers,

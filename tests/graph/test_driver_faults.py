@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from led_history import masks_lit_since
 from rclpy.node import Node
 
 from fingerps_driver.board.board_emulator import BoardEmulatorControl, Fault
@@ -34,16 +35,6 @@ def references() -> np.ndarray:
     refs = np.stack([rig.noiseless(Scene.FINGER, [k]).ravel() for k in LEDS]).astype(float)
     refs -= refs.mean(axis=1, keepdims=True)
     return refs / np.linalg.norm(refs, axis=1, keepdims=True)
-
-
-def _lit_since(control: BoardEmulatorControl, start: float) -> list[int]:
-    """What the emulator had lit since ``start``, one entry per change (a resent switch
-    to the same mask is executed again but changes nothing)."""
-    lit: list[int] = []
-    for t, mask in control.history(100):
-        if t >= start and (not lit or lit[-1] != mask):
-            lit.append(mask)
-    return lit
 
 
 def _led_seen(frame, references: np.ndarray) -> int:
@@ -118,7 +109,7 @@ class _Rig:
         start = time.monotonic()
         response = self.capture()
         assert response.success, response.message
-        assert _lit_since(self.control, start) == BURST_MASKS
+        assert masks_lit_since(self.control.history(100), start) == BURST_MASKS
         _assert_whole_and_truly_tagged(response.burst, references)
         return response.burst
 
@@ -144,7 +135,7 @@ def test_disconnect_mid_burst_fails_it_then_the_driver_reconnects(rig, reference
     failed = rig.capture()
     assert not failed.success
     assert "LED 2" in failed.message and "BoardDisconnectedError" in failed.message
-    assert _lit_since(rig.control, start) == [1, 2, 4, 0]
+    assert masks_lit_since(rig.control.history(100), start) == [1, 2, 4, 0]
     failed_id = good.burst_id + 1
     rig.spin_until(lambda: rig.value("board", "state") == "disconnected"
                    and rig.status["driver: board"].level == DiagnosticStatus.ERROR

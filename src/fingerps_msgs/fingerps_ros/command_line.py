@@ -23,12 +23,12 @@ from dataclasses import dataclass
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.privacy import start_private_tool
 
-EXIT_OK = 0
 EXIT_FAILED = 1
 """The job ran on good input and did not succeed (a calibration failed its checks, the
 outputs could not be written)."""
 EXIT_BAD_INPUT = 2
-"""The input is wrong; the one line on stderr says what to fix."""
+"""The input is wrong; the one line on stderr says what to fix (a node started with a bad
+parameter exits with it too: ``node_runner``)."""
 
 ErrorTypes = tuple[type[BaseException], ...]
 

@@ -47,11 +47,11 @@ from rclpy.exceptions import (
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
+from fingerps_ros.command_line import EXIT_BAD_INPUT
 from fingerps_ros.errors import PrivacySettingError
 from fingerps_ros.parameters import UnknownParameterError
 from fingerps_ros.privacy import apply_private_umask
 
-EXIT_BAD_INPUT = 2
 PROFILES_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
 PROFILE_FILE = "fastdds_large_data.xml"
 
