@@ -282,13 +282,7 @@ def test_driver_image_raw_companion_is_exact(ros_node: Node, start_node, spin_un
                             profile, packed)
     driver = start_node("fingerps_driver", "driver_node", "--ros-args",
                         "-p", f"sim.bit_depth:={bit_depth}", "-p", IMAGE_RAW_ON)
-    try:
-        driver.wait_in_graph(ros_node, "driver", NS)
-    except pytest.fail.Exception:
-        if "has no parameter 'image_raw.enable_pub_plugins'" in driver.output:
-            pytest.skip("driver_node does not publish image_raw/compressed yet "
-                        "(CompressedTopics not wired in driver_node.py)")
-        raise
+    driver.wait_in_graph(ros_node, "driver", NS)
     spin_until(lambda: compressed_sub.get_publisher_count() >= 1,
                "the driver's image_raw/compressed publisher")
     _Calls(ros_node, call_service).capture()
