@@ -76,6 +76,7 @@ import numpy as np
 
 from fingerps_driver.demo import call_service, executable
 from fingerps_driver.errors import DemoError
+from fingerps_ros.time_conversion import time_nanoseconds
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from figures_report import exit_codes, print_figures
@@ -272,7 +273,7 @@ class Observer:
     def _on_cloud(self, msg) -> None:
         now = time.time_ns()
         mono = time.monotonic()
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = time_nanoseconds(msg.header.stamp)
         with self.seen.lock:
             self.seen.clouds[stamp] = now
             self.seen.cloud_mono.append(mono)

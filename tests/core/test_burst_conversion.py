@@ -11,7 +11,6 @@ from std_msgs.msg import Header
 
 from fingerps_driver.burst_conversion import (
     burst_message,
-    stamp,
     stamped_camera_info,
     tagged_frame,
 )
@@ -22,11 +21,6 @@ from fingerps_msgs.msg import TaggedFrame
 def _frame(led: int, stamp_ns: int) -> CapturedFrame:
     return CapturedFrame(led, np.full((2, 3), led, np.uint8), stamp_ns, 0.01 * (led + 1),
                          0.5 if led != DARK_LED else 0.0)
-
-
-def test_stamps_split_nanoseconds():
-    t = stamp(3_000_000_007)
-    assert (t.sec, t.nanosec) == (3, 7)
 
 
 def test_a_frame_is_tagged_with_its_led_exposure_and_level():

@@ -8,17 +8,10 @@ from typing import Any
 import pytest
 from rcl_interfaces.msg import ParameterDescriptor
 
+from fingerps_driver import driver_parameters as table
 from fingerps_driver.board.backoff import Backoff
 from fingerps_driver.board.board_connection import BoardSettings
 from fingerps_driver.cameras.camera_setup import CameraBackend, CameraSettings, SimSettings
-from fingerps_driver.driver_parameters import (
-    FINGER_POSE,
-    board_settings,
-    burst_plan,
-    camera_settings,
-    driver_parameters,
-    finger_config,
-)
 from fingerps_driver.simulation import RigConfig
 from fingerps_ros.parameters import row_descriptor
 
@@ -26,14 +19,14 @@ from fingerps_ros.parameters import row_descriptor
 def _declared(**overrides: Any) -> dict[str, Any]:
     """The values the node declares, in order (a callable default sees the ones before)."""
     values: dict[str, Any] = {}
-    for row in driver_parameters(values.__getitem__):
+    for row in table.driver_parameters(values.__getitem__):
         values[row.name] = overrides.get(row.name, row.default_value())
     return values
 
 
 def _rows(values: dict[str, Any] | None = None) -> dict[str, Any]:
     values = _declared() if values is None else values
-    return {row.name: row for row in driver_parameters(values.__getitem__)}
+    return {row.name: row for row in table.driver_parameters(values.__getitem__)}
 
 
 def _descriptor(name: str) -> ParameterDescriptor:
@@ -41,11 +34,11 @@ def _descriptor(name: str) -> ParameterDescriptor:
 
 
 def test_every_parameter_once_in_declaration_order():
-    names = [row.name for row in driver_parameters(_declared().__getitem__)]
+    names = [row.name for row in table.driver_parameters(_declared().__getitem__)]
     assert len(names) == len(set(names)) == 42
     assert names[:8] == ["port", "baudrate", "board_timeout", "board_retries", "wait_for_port",
                          "reconnect_initial_s", "reconnect_max_s", "led_count"]
-    assert names[-1] == "sim.board_control" and set(FINGER_POSE) <= set(names)
+    assert names[-1] == "sim.board_control" and set(table.FINGER_POSE) <= set(names)
 
 
 def test_defaults_follow_the_parameters_declared_before():
@@ -103,11 +96,11 @@ def test_checks_take_good_values(name, value):
 
 def test_the_defaults_read_back_as_the_settings_defaults():
     values = _declared()
-    assert board_settings(values.__getitem__) == BoardSettings(backoff=Backoff(0.5, 5.0))
-    settings = camera_settings(values.__getitem__)
+    assert table.board_settings(values.__getitem__) == BoardSettings(backoff=Backoff(0.5, 5.0))
+    settings = table.camera_settings(values.__getitem__)
     assert settings == CameraSettings(sim=SimSettings(finger=settings.sim.finger))
-    assert settings.sim.finger == finger_config(values.__getitem__)
-    plan = burst_plan(values.__getitem__)
+    assert settings.sim.finger == table.finger_config(values.__getitem__)
+    plan = table.burst_plan(values.__getitem__)
     assert plan.led_order == tuple(range(7)) and plan.exposures_s == (0.01,) * 7
 
 
@@ -117,15 +110,15 @@ def test_settings_read_what_is_set():
                        exposure_times=[0.001 * (i + 1) for i in range(7)],
                        **{"sim.board_control": "/tmp/ctl", "sim.finger_identity": 4,
                           "sim.finger_shift_mm": [1.0, -2.0]})
-    board = board_settings(values.__getitem__)
+    board = table.board_settings(values.__getitem__)
     assert (board.port, board.control, board.backoff) == ("/dev/ttyACM0", "/tmp/ctl",
                                                           Backoff(2.0, 2.0))
-    camera = camera_settings(values.__getitem__)
+    camera = table.camera_settings(values.__getitem__)
     assert (camera.backend, camera.device, camera.exposure_s) == (CameraBackend.V4L2, "2",
                                                                   0.004)
     finger = camera.sim.finger
     x, y, z = RigConfig().finger_apex_optical_m
     assert finger["finger_identity"] == 4
     assert finger["finger_apex_optical_m"] == pytest.approx((x + 0.001, y - 0.002, z))
-    plan = burst_plan(values.__getitem__)
+    plan = table.burst_plan(values.__getitem__)
     assert plan.led_order == (3, 1) and plan.exposures_s == (0.004, 0.002)

@@ -14,6 +14,7 @@ from fingerps_msgs.msg import TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import topics
 from fingerps_ros.image_conversion import image_to_array
+from fingerps_ros.time_conversion import time_nanoseconds
 
 NS = "/" + topics.NAMESPACE
 
@@ -34,7 +35,7 @@ def test_burst_frames_are_tagged_with_the_led_that_lit_them(
     assert all(f.led_count == 7 and f.burst_id == burst.burst_id for f in burst.frames)
     assert burst.has_dark_frame and burst.dark_frame.led_index == TaggedFrame.LED_DARK
     assert burst.camera_info.k[0] > 0 and burst.camera_info.width == 659
-    stamps = [f.header.stamp.sec * 10**9 + f.header.stamp.nanosec for f in burst.frames]
+    stamps = [time_nanoseconds(f.header.stamp) for f in burst.frames]
     assert stamps == sorted(stamps)
 
     # Each frame must look like the rig under its tagged LED and under no other.

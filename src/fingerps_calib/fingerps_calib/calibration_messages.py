@@ -23,6 +23,7 @@ from fingerps_calib.errors import FingerpsCalibError
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.image_conversion import array_to_image, image_to_array
+from fingerps_ros.time_conversion import time_message
 
 
 def frame_pixels(frame: TaggedFrame) -> np.ndarray:
@@ -122,6 +123,4 @@ def _shots(frames: list[TaggedFrame], camera_info: CameraInfo | None,
 
 
 def _header(frame_id: str, stamp_ns: int) -> Header:
-    header = Header(frame_id=frame_id)
-    header.stamp.sec, header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return header
+    return Header(frame_id=frame_id, stamp=time_message(stamp_ns))

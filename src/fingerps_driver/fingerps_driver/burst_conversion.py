@@ -10,24 +10,19 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from builtin_interfaces.msg import Time
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
 from fingerps_driver.capture.burst import BurstResult, CapturedFrame
 from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_ros.image_conversion import array_to_image
-
-
-def stamp(ns: int) -> Time:
-    """A ``builtin_interfaces/Time`` of integer nanoseconds."""
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+from fingerps_ros.time_conversion import time_message
 
 
 def tagged_frame(frame: CapturedFrame, *, burst_id: int, led_count: int, encoding: str,
                  frame_id: str) -> TaggedFrame:
     """``frame`` as a TaggedFrame of burst ``burst_id``, its image in ``encoding``."""
-    header = Header(stamp=stamp(frame.stamp_ns), frame_id=frame_id)
+    header = Header(stamp=time_message(frame.stamp_ns), frame_id=frame_id)
     return TaggedFrame(
         header=header, burst_id=burst_id, led_index=frame.led_index, led_count=led_count,
         exposure_time=frame.exposure_s, led_intensity=frame.level,

@@ -42,6 +42,7 @@ from fingerps_ros import qos, topics
 from fingerps_ros.image_conversion import image_to_array
 from fingerps_ros.point_cloud_conversion import cloud_to_points
 from fingerps_ros.privacy import start_private_tool, use_localhost_discovery
+from fingerps_ros.time_conversion import time_nanoseconds
 
 # Sphere placements for the light calibration (optical frame, metres): with two or more the
 # calibration also finds the LED positions, and reconstruction uses near lights.
@@ -87,7 +88,7 @@ class Received:
 
 
 def _stamp_ns(msg: Image | PointCloud2) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    return time_nanoseconds(msg.header.stamp)
 
 
 def call_service(client, request, *, timeout: float, what: str):

@@ -30,7 +30,7 @@ millimetres apart give LED positions within ~1 mm and directions within ~0.1 deg
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -96,15 +96,7 @@ class Placement:
     @classmethod
     def from_result(cls, result: LightCalibrationResult) -> Placement:
         """The placement of a single-sphere calibration (`calibrate_lights`)."""
-        return cls(
-            sphere_center_optical_m=result.sphere_center_optical_m,
-            radius_m=result.radius_m,
-            edge_rms_px=result.edge_rms_px,
-            highlight_points_optical_m=result.highlight_points_optical_m,
-            directions_optical=result.directions_optical,
-            highlights_uv=result.highlights_uv,
-            residuals_px=result.residuals_px,
-        )
+        return cls(**{f.name: getattr(result, f.name) for f in fields(cls)})
 
 
 @dataclass(frozen=True, eq=False)

@@ -124,12 +124,13 @@ def calibration_arrays(lights: LightCalibration) -> tuple[
             leds if len(leds) else None)
 
 
-def check_light_calibration(lights: LightCalibration) -> None:
-    """Raise ``FingerpsReconError`` unless the message can determine normals (finite, unit,
-    non-degenerate directions; finite positive intensities; finite LED positions, one per
-    direction): ``pipeline.check_calibration`` on its arrays."""
+def check_light_calibration(lights: LightCalibration) -> LightCalibration:
+    """``lights``, checked: raise ``FingerpsReconError`` unless the message can determine
+    normals (finite, unit, non-degenerate directions; finite positive intensities; finite LED
+    positions, one per direction): ``pipeline.check_calibration`` on its arrays."""
     directions, intensities, leds = calibration_arrays(lights)
     check_calibration(directions, intensities=intensities, led_positions_optical=leds)
+    return lights
 
 
 def flat_field_maps(flat: FlatField, limits: BurstLimits) -> np.ndarray:

@@ -19,6 +19,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -48,9 +49,11 @@ from fingerps_recon.reconstruction.problem_log import LogGate, one_line
 from fingerps_recon.surface.rolled_print import RolledPrint
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.log import Log
+from fingerps_ros.time_conversion import time_nanoseconds
 
 # Outcome of a burst, for the health level.
 _OK, _WARN, _BAD = 0, 1, 2
+_T = TypeVar("_T")
 
 
 
@@ -142,37 +145,36 @@ class ReconstructionWorker:
         return run
 
     # ------------------------------------------------------------------ intake
-    def _refuse(self, kind: str, reason: str) -> None:
-        """A calibration message refused on arrival: counted, and WARN until replaced."""
-        self.calibrations_refused += 1
-        self._refused[kind] = reason
-        self.last_problem = f"{kind} refused: {reason}"
-        held = self.lights if kind == "light calibration" else self._flat_maps
-        self._log.error(f"{self.last_problem}; "
-                        + ("the previous one stays in force" if held is not None
-                           else "none is in force"))
+    def _checked(self, kind: str, check: Callable[[], _T]) -> _T | None:
+        """Run a calibration message's ``check``: its result, or None once the message is
+        refused (counted, logged, and WARN until one of its ``kind`` is accepted)."""
+        try:
+            result = check()
+        except FingerpsError as exc:
+            self.calibrations_refused += 1
+            self._refused[kind] = str(exc)
+            self.last_problem = f"{kind} refused: {exc}"
+            held = self.lights if kind == "light calibration" else self._flat_maps
+            self._log.error(f"{self.last_problem}; "
+                            + ("the previous one stays in force" if held is not None
+                               else "none is in force"))
+            return None
+        self._refused.pop(kind, None)
+        return result
 
     def on_lights(self, msg: LightCalibration) -> None:
         """A light calibration: in force from the next burst on, unless it is refused."""
-        try:
-            check_light_calibration(msg)
-        except FingerpsError as exc:
-            self._refuse("light calibration", str(exc))
-            return
-        self.lights = msg
-        self._refused.pop("light calibration", None)
-        self._log.info(f"light calibration received: {len(msg.directions)} LEDs")
+        lights = self._checked("light calibration", lambda: check_light_calibration(msg))
+        if lights is not None:
+            self.lights = lights
+            self._log.info(f"light calibration received: {len(msg.directions)} LEDs")
 
     def on_flat(self, msg: FlatField) -> None:
         """A flat field: in force from the next burst on, unless it is refused."""
-        try:
-            maps = flat_field_maps(msg, self._settings().limits)
-        except FingerpsError as exc:
-            self._refuse("flat field", str(exc))
-            return
-        self._flat_maps = maps
-        self._refused.pop("flat field", None)
-        self._log.info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
+        maps = self._checked("flat field", lambda: flat_field_maps(msg, self._settings().limits))
+        if maps is not None:
+            self._flat_maps = maps
+            self._log.info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
 
     def on_camera_info(self, msg: CameraInfo) -> None:
         """Kept so that the calibration is prepared for the camera before its first burst."""
@@ -320,8 +322,8 @@ class ReconstructionWorker:
             self._log.warning(self.last_problem, throttle_duration_sec=10.0)
         if not self._publish(made, burst):
             outcome = _WARN
-        result, stamp = made.result, burst.header.stamp
-        self.stages.add(stamp.sec * 1_000_000_000 + stamp.nanosec, arrival_ns, start_ns,
+        result = made.result
+        self.stages.add(time_nanoseconds(burst.header.stamp), arrival_ns, start_ns,
                         result.timings_ms["total"], time.time_ns())
         self.done += 1
         self.last_error = ""
