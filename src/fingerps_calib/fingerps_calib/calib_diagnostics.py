@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import threading
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
+
+from fingerps_ros.diagnostics import key_values
 
 
 def one_line(text: str) -> str:
@@ -63,12 +65,12 @@ def calibration_status(name: str, calls: dict, *, lights_date: str,
         status.level = DiagnosticStatus.OK
     status.message = (one_line(calls["last_error"]) if status.level != DiagnosticStatus.OK
                       else "ok")
-    status.values = [
-        KeyValue(key="calls_ok", value=str(calls["ok"])),
-        KeyValue(key="calls_refused", value=str(calls["refused"])),
-        KeyValue(key="calls_failed_unexpectedly", value=str(calls["unexpected"])),
-        KeyValue(key="last_error", value=one_line(calls["last_error"])),
-        KeyValue(key="lights_in_force", value=lights_date),
-        KeyValue(key="flat_field_in_force", value=flat_field_date),
-    ]
+    status.values = key_values({
+        "calls_ok": str(calls["ok"]),
+        "calls_refused": str(calls["refused"]),
+        "calls_failed_unexpectedly": str(calls["unexpected"]),
+        "last_error": one_line(calls["last_error"]),
+        "lights_in_force": lights_date,
+        "flat_field_in_force": flat_field_date,
+    })
     return status

@@ -32,7 +32,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
@@ -53,6 +53,7 @@ from fingerps_calib.intrinsics.camera_info_yaml import load_camera_info
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
 from fingerps_ros import qos, topics
+from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher
 from fingerps_ros.node_runner import StartupError, run_node
 
 
@@ -84,7 +85,7 @@ class CalibNode(Node):
         # the last calibration published, with its record: a service's answer reuses it
         self._sent_lights: tuple[LightsRecord | None, LightCalibration | None] = (None, None)
         self._sent_flat: tuple[FlatFieldRecord | None, FlatField | None] = (None, None)
-        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        self._diagnostics = DiagnosticsPublisher(self, self._statuses)
         self._keeper = CalibrationKeeper(
             directory, file_camera=file_camera, log=self.get_logger(),
             now_ns=lambda: self.get_clock().now().nanoseconds,
@@ -96,7 +97,7 @@ class CalibNode(Node):
         self.create_service(CalibrateFlatField, topics.CALIBRATE_FLAT_FIELD,
                             self._answering("calibrate_flat_field", self._on_flat),
                             callback_group=self._service_group)
-        self.create_timer(1.0, self._publish_diagnostics)
+        self.create_timer(PERIOD_S, self._diagnostics.publish)
         source = f"camera_info_file {info_file}" if info_file else "the driver's camera_info"
         where = str(directory) if directory is not None else "nowhere (calibration_dir empty)"
         self.get_logger().info(f"calib ready: intrinsics from {source}; calibrations saved "
@@ -131,21 +132,18 @@ class CalibNode(Node):
                 self.get_logger().error(f"{service}: unexpected error, answered with "
                                         f"success false: {text}")
                 self._calls.count(service, answer.message, unexpected=True)
-                self._publish_diagnostics()
+                self._diagnostics.publish()
                 return answer
             self._calls.count(service, "" if answer.success else answer.message)
-            self._publish_diagnostics()
+            self._diagnostics.publish()
             return answer
         return callback
 
-    def _publish_diagnostics(self) -> None:
+    def _statuses(self) -> list[DiagnosticStatus]:
         lights, flat = self._keeper.lights, self._keeper.flat
-        array = DiagnosticArray(status=[calibration_status(
-            self.get_name(), self._calls.snapshot(),
-            lights_date=lights.date if lights is not None else "",
-            flat_field_date=flat.date if flat is not None else "")])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(array)
+        return [calibration_status(self.get_name(), self._calls.snapshot(),
+                                   lights_date=lights.date if lights is not None else "",
+                                   flat_field_date=flat.date if flat is not None else "")]
 
     # ------------------------------------------------------------------ images
     def _shots(self, given: list[TaggedFrame], *, with_dark: bool) -> Shots:

@@ -11,10 +11,11 @@ import statistics
 import time
 from collections.abc import Iterable
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 
 from fingerps_driver.board.board_connection import BoardConnection, BoardState
 from fingerps_driver.driver_core import DriverCore
+from fingerps_ros.diagnostics import key_values
 
 
 def driver_statuses(node_name: str, core: DriverCore,
@@ -38,16 +39,16 @@ def board_status(node_name: str, board: BoardConnection) -> DiagnosticStatus:
         status.level = (DiagnosticStatus.ERROR if state is BoardState.DISCONNECTED
                         else DiagnosticStatus.WARN)
         status.message = f"{state.value}: {board.error}; next attempt in {board.wait_s():.1f} s"
-    status.values = [
-        KeyValue(key="state", value=state.value),
-        KeyValue(key="port", value=led_board.port),
-        KeyValue(key="firmware", value=board.firmware),
-        KeyValue(key="resends", value=str(led_board.resends)),
-        KeyValue(key="disconnects", value=str(board.disconnects)),
-        KeyValue(key="reconnects", value=str(board.reconnects)),
-        KeyValue(key="reconnect_attempts", value=str(board.reconnect_attempts)),
-        KeyValue(key="last_board_error", value=board.error),
-    ]
+    status.values = key_values({
+        "state": state.value,
+        "port": led_board.port,
+        "firmware": board.firmware,
+        "resends": str(led_board.resends),
+        "disconnects": str(board.disconnects),
+        "reconnects": str(board.reconnects),
+        "reconnect_attempts": str(board.reconnect_attempts),
+        "last_board_error": board.error,
+    })
     return status
 
 
@@ -62,18 +63,17 @@ def camera_status(node_name: str, core: DriverCore, compressed_failures: int) ->
     status.level = DiagnosticStatus.WARN if camera_failed_last else DiagnosticStatus.OK
     status.message = (f"last burst failed at the camera: {c.camera_error}"
                       if camera_failed_last else "ok")
-    status.values = [
-        KeyValue(key="backend", value=backend),
-        KeyValue(key="device", value=device),
-        KeyValue(key="size", value=f"{camera.width}x{camera.height}"),
-        KeyValue(key="encoding", value=camera.encoding),
-        KeyValue(key="frames", value=str(camera.frames_grabbed)),
-        KeyValue(key="refused_settings", value=", ".join(camera.refused_settings)),
-        KeyValue(key="compressed_failures", value=str(compressed_failures)),
-        KeyValue(key="calibration",
-                 value=core.calibration.current.source if core.calibration else ""),
-        KeyValue(key="last_camera_error", value=c.camera_error),
-    ]
+    status.values = key_values({
+        "backend": backend,
+        "device": device,
+        "size": f"{camera.width}x{camera.height}",
+        "encoding": camera.encoding,
+        "frames": str(camera.frames_grabbed),
+        "refused_settings": ", ".join(camera.refused_settings),
+        "compressed_failures": str(compressed_failures),
+        "calibration": core.calibration.current.source if core.calibration else "",
+        "last_camera_error": c.camera_error,
+    })
     return status
 
 
@@ -100,19 +100,18 @@ def burst_status(node_name: str, core: DriverCore) -> DiagnosticStatus:
             "burst_ms_median and publish_ms_median); lower rate")
     burst_median, burst_max = _median_and_max(core.burst_ms)
     publish_median, publish_max = _median_and_max(core.publish_ms)
-    status.values = [
-        KeyValue(key="bursts_ok", value=str(c.ok)),
-        KeyValue(key="bursts_failed", value=str(c.failed)),
-        KeyValue(key="last_error", value=c.last_error),
-        KeyValue(key="last_burst_ms", value=f"{c.last_burst_ms:.1f}"),
-        KeyValue(key="burst_ms_median", value=burst_median),
-        KeyValue(key="burst_ms_max", value=burst_max),
-        KeyValue(key="last_publish_ms", value=f"{c.last_publish_ms:.2f}"),
-        KeyValue(key="publish_ms_median", value=publish_median),
-        KeyValue(key="publish_ms_max", value=publish_max),
-        KeyValue(key="timing_window", value=str(len(core.publish_ms))),
-        KeyValue(key="rate_requested", value=f"{rate.requested:g}"),
-        KeyValue(key="rate_achieved",
-                 value="" if rate.achieved is None else f"{rate.achieved:.2f}"),
-    ]
+    status.values = key_values({
+        "bursts_ok": str(c.ok),
+        "bursts_failed": str(c.failed),
+        "last_error": c.last_error,
+        "last_burst_ms": f"{c.last_burst_ms:.1f}",
+        "burst_ms_median": burst_median,
+        "burst_ms_max": burst_max,
+        "last_publish_ms": f"{c.last_publish_ms:.2f}",
+        "publish_ms_median": publish_median,
+        "publish_ms_max": publish_max,
+        "timing_window": str(len(core.publish_ms)),
+        "rate_requested": f"{rate.requested:g}",
+        "rate_achieved": "" if rate.achieved is None else f"{rate.achieved:.2f}",
+    })
     return status

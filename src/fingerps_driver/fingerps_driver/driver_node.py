@@ -25,7 +25,6 @@ import time
 from collections.abc import Callable
 from functools import partial
 
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from sensor_msgs.srv import SetCameraInfo
@@ -56,6 +55,7 @@ from fingerps_msgs.msg import Burst, TaggedFrame
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import qos, topics
 from fingerps_ros.compressed_topics import CompressedTopics
+from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher
 from fingerps_ros.node_runner import run_node
 from fingerps_ros.parameters import declare_parameters
 
@@ -72,9 +72,11 @@ class DriverNode(Node):
             self, topics.IMAGE_RAW, qos.SENSOR_QOS, self._checks, enabled_by_default=False)
         self._checks.refuse_unknown_overrides(self)
 
+        self._diagnostics = DiagnosticsPublisher(self, lambda: driver_statuses(
+            self.get_name(), self._core, self._image_compressed.failures))
         self._core = DriverCore(board_settings(self._param), camera_settings(self._param),
                                 log=self.get_logger(), start_timer=self._one_shot,
-                                on_board_change=self._publish_diagnostics)
+                                on_board_change=self._diagnostics.publish)
         self._core.open(node_name=self.get_fully_qualified_name(),
                         image_topic=self.resolve_topic_name(topics.IMAGE_RAW))
         assert self._core.calibration is not None and self._core.camera is not None
@@ -84,11 +86,10 @@ class DriverNode(Node):
         self._pub_image = self.create_publisher(Image, topics.IMAGE_RAW, qos.SENSOR_QOS)
         self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, qos.SENSOR_QOS)
         self._pub_burst = self.create_publisher(Burst, topics.BURST, qos.BURST_QOS)
-        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self.create_service(CaptureBurst, topics.CAPTURE_BURST, self._on_capture)
         # camera_info_manager's service name, where camera_calibration's calibrator commits
         self.create_service(SetCameraInfo, "~/set_camera_info", self._on_set_camera_info)
-        self.create_timer(1.0, self._on_diagnostics_timer)
+        self.create_timer(PERIOD_S, self._on_diagnostics_timer)
         self._rate_timer = None
         self._apply_rate(self._param("rate"))
         self.add_post_set_parameters_callback(self._after_set)
@@ -227,13 +228,7 @@ class DriverNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _on_diagnostics_timer(self) -> None:
         if not self._core.board.lose_if_port_vanished():  # a loss publishes them itself
-            self._publish_diagnostics()
-
-    def _publish_diagnostics(self) -> None:
-        array = DiagnosticArray(status=driver_statuses(self.get_name(), self._core,
-                                                       self._image_compressed.failures))
-        array.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(array)
+            self._diagnostics.publish()
 
     def destroy_node(self) -> None:
         """Switch the LEDs off and close the board and camera (idempotent)."""

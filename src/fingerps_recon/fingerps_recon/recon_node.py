@@ -27,7 +27,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
@@ -44,6 +44,7 @@ from fingerps_recon.reconstruction.parameters import PARAMETERS, follow_threads,
 from fingerps_recon.reconstruction.worker import ReconstructionWorker
 from fingerps_ros import qos, topics
 from fingerps_ros.compressed_topics import CompressedTopics
+from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher
 from fingerps_ros.node_runner import run_node
 from fingerps_ros.parameters import declare_parameters
 
@@ -82,8 +83,8 @@ class ReconNode(Node):
             topic: self.create_publisher(PointCloud2 if topic == topics.POINTS else Image, topic,
                                          qos.OUTPUT_QOS)
             for topic in (*OUTPUT_TOPICS, topics.FINGERPRINT)}
-        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        self.create_timer(1.0, guarded("diagnostics", self._publish_diagnostics))
+        self._diagnostics = DiagnosticsPublisher(self, self._statuses)
+        self.create_timer(PERIOD_S, guarded("diagnostics", self._diagnostics.publish))
         self._worker = threading.Thread(target=recon.run, name="recon_worker")
         self._worker.start()
         self.get_logger().info("recon ready: waiting for a light calibration and bursts")
@@ -110,12 +111,10 @@ class ReconNode(Node):
             self._compressed[topic].publish(array, encoding, header)
         return printed
 
-    def _publish_diagnostics(self) -> None:
+    def _statuses(self) -> list[DiagnosticStatus]:
         failures = sum(c.failures for c in self._compressed.values())
-        array = DiagnosticArray(status=[reconstruction_status(
-            self.get_name(), self._recon, compressed_failures=failures)])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(array)
+        return [reconstruction_status(self.get_name(), self._recon,
+                                      compressed_failures=failures)]
 
     def destroy_node(self) -> None:
         """Stop the worker (it finishes the burst in hand) and destroy the node."""

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import rclpy.logging
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from rclpy.utilities import get_rmw_implementation_identifier
 
@@ -69,6 +69,7 @@ from fingerps_recon.sessions.session_topics import (
     topics_problem,
 )
 from fingerps_ros import topics
+from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher, key_values
 from fingerps_ros.node_runner import run_node
 from fingerps_ros.parameter_table import ParameterRow
 from fingerps_ros.parameters import declare_parameters
@@ -165,8 +166,8 @@ class RecorderNode(Node):
             logger=self.get_logger(), writer_logger=self._shutdown_logger)
         self._finished = False
         self._subscriptions_made: list[Any] = []
-        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        self.create_timer(1.0, self._publish_diagnostics)
+        self._diagnostics = DiagnosticsPublisher(self, self._statuses)
+        self.create_timer(PERIOD_S, self._diagnostics.publish)
 
         self._recorder.start({
             "fingerps.software": software_record(
@@ -224,15 +225,11 @@ class RecorderNode(Node):
         """Messages subscribed to and not written, per topic and reason (no zero entries)."""
         return self._recorder.not_written()
 
-    def _publish_diagnostics(self) -> None:
+    def _statuses(self) -> list[DiagnosticStatus]:
         health = self._recorder.health()
-        status = DiagnosticStatus(name=f"{self.get_name()}: recording",
-                                  level=bytes([health.level]), message=health.message,
-                                  values=[KeyValue(key=k, value=v)
-                                          for k, v in health.values.items()])
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(array)
+        return [DiagnosticStatus(name=f"{self.get_name()}: recording",
+                                 level=bytes([health.level]), message=health.message,
+                                 values=key_values(health.values))]
 
     def destroy_node(self) -> None:
         """Finish the bag (so SIGINT and SIGTERM leave a valid bag), then destroy the node."""

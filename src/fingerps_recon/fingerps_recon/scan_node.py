@@ -17,7 +17,7 @@ import threading
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import GetParameters
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -57,6 +57,7 @@ from fingerps_recon.scan.scan_settings import (
     goal_settings,
 )
 from fingerps_ros import qos, topics
+from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher, key_values
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.image_conversion import array_to_image, image_to_array, images_to_array
 from fingerps_ros.node_runner import run_node
@@ -91,8 +92,8 @@ class ScanNode(Node):
             GetParameters, f"{recorder}/get_parameters", callback_group=self._group)
             if recorder else None)
         self._pub_rejections = self.create_publisher(String, SCAN_REJECTIONS, 10)
-        self._pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        self.create_timer(1.0, self._publish_diagnostics, callback_group=self._group)
+        self._diagnostics = DiagnosticsPublisher(self, self._statuses)
+        self.create_timer(PERIOD_S, self._diagnostics.publish, callback_group=self._group)
         self._server = ActionServer(
             self, Scan, SCAN, execute_callback=self._execute, goal_callback=self._on_goal,
             cancel_callback=lambda _goal: CancelResponse.ACCEPT, callback_group=self._group)
@@ -197,7 +198,7 @@ class ScanNode(Node):
         result.motion_px, result.motion_correlation = f.motion_px, f.motion_correlation
         result.residual = f.residual
         result.session_path = self._session_path()
-        self._publish_diagnostics()
+        self._diagnostics.publish()
 
     def _capture_burst(self, publish: bool, repeat: bool) -> ScanBurst:
         timeout = float(self._value("capture_timeout"))
@@ -259,15 +260,12 @@ class ScanNode(Node):
             return ""
         return f"{values[0].string_value.rstrip('/')}/{values[1].string_value}"
 
-    def _publish_diagnostics(self) -> None:
+    def _statuses(self) -> list[DiagnosticStatus]:
         state = self._sequence.status(calibrated=self._lights is not None)
-        status = DiagnosticStatus(
+        return [DiagnosticStatus(
             name=f"{self.get_name()}: verdict", message=state.message,
             level=DiagnosticStatus.OK if state.ok else DiagnosticStatus.WARN,
-            values=[KeyValue(key=k, value=v) for k, v in state.values.items()])
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(array)
+            values=key_values(state.values))]
 
     def destroy_node(self) -> None:
         """Destroy the action server and the node."""

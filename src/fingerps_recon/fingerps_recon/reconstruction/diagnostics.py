@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 
 from fingerps_recon.photometric.kernel_threads import available_cores, thread_limit
 from fingerps_recon.reconstruction.worker import ReconstructionWorker
+from fingerps_ros.diagnostics import key_values
 
 
 def reconstruction_status(name: str, worker: ReconstructionWorker, *,
@@ -32,5 +33,5 @@ def reconstruction_status(name: str, worker: ReconstructionWorker, *,
               "calibrated": str(w.lights is not None),
               "calibrations_prepared": str(w.prepared.count),
               **{key: f"{value:.1f}" for key, value in w.stages.medians().items()}}
-    status.values = [KeyValue(key=key, value=value) for key, value in values.items()]
+    status.values = key_values(values)
     return status
