@@ -6,7 +6,7 @@ import pytest
 
 from fingerps_driver.board.led_board import LedBoard
 from fingerps_driver.cameras.camera import Camera, SimulatedCamera
-from fingerps_driver.capture.device import Device
+from fingerps_driver.device import Device
 
 
 class _Counted(Device):

@@ -30,7 +30,7 @@ from fingerps_driver.board.board_protocol import (
     parse_uint,
 )
 from fingerps_driver.board.frame_reader import FrameReader
-from fingerps_driver.capture.device import Device
+from fingerps_driver.device import Device
 from fingerps_driver.errors import (
     BoardDisconnectedError,
     BoardError,
@@ -51,7 +51,7 @@ class BoardInfo:
 
 
 @dataclass(frozen=True)
-class BoardState:
+class LedState:
     """Answer to ``STATE``: the mask lit now and the drive level 0..255 of every LED."""
 
     mask: int
@@ -178,13 +178,13 @@ class LedBoard(Device):
             raise BoardProtocolError(f"INFO reply {reply.values} is not <firmware>,<count>")
         return BoardInfo(reply.values[0], self._uint(reply.values[1], MAX_LEDS))
 
-    def state(self) -> BoardState:
+    def state(self) -> LedState:
         """Mask lit now and every LED's level."""
         reply = self._transact(Command.STATE)
         if not reply.values:
             raise BoardProtocolError("STATE reply holds no mask")
         levels = tuple(self._uint(v, MAX_LEVEL) for v in reply.values[1:])
-        return BoardState(self._mask(reply.values[0]), levels)
+        return LedState(self._mask(reply.values[0]), levels)
 
     def set_leds(self, mask: int) -> int:
         """Light exactly the LEDs in ``mask``; return the mask the board acknowledged.

@@ -23,7 +23,7 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from fingerps_driver.capture.device import Device
+from fingerps_driver.device import Device
 from fingerps_driver.errors import CameraError, FingerpsDriverError
 
 ENCODING_DTYPES = {"mono8": np.dtype(np.uint8), "mono16": np.dtype(np.uint16)}
@@ -113,7 +113,7 @@ def check_frame(image: np.ndarray, *, width: int, height: int, source: str) -> n
 class Camera(Device):
     """A monochrome camera delivering one frame per ``grab``: what every backend shares.
 
-    The base owns the lifecycle (``open``/``close``/``with`` of ``capture.device.Device``),
+    The base owns the lifecycle (``open``/``close``/``with`` of ``fingerps_driver.device.Device``),
     the size and encoding, the checks of ``grab`` (a positive timeout, an open camera) and
     the frame counter. A backend implements only what differs: ``is_open``, ``_acquire``,
     ``_release`` and ``_frame``.
