@@ -9,6 +9,8 @@ import math
 import pytest
 
 from fingerps_calib.calib_parameters import (
+    CALIB_PARAMETERS,
+    CHECKED_AT_START,
     check_camera_name,
     check_reference_point,
     check_sphere_radius,
@@ -50,3 +52,11 @@ def test_the_settings_defaults_are_the_parameters_defaults():
         camera_name="fingerps_sim", sphere_radius_m=0.004,
         reference_point_optical_m=(0.0, 0.0025, 0.09), sphere_distance_tolerance=0.3,
         flat_field_degree=4, mono16_full_scale=4095.0)
+
+
+def test_every_parameter_with_a_check_is_checked_at_start():
+    # CHECKED_AT_START orders the start-up message by hand; it must name exactly the rows
+    # that have a check, so that a new check is not left out of the start
+    with_check = {row.name for row in CALIB_PARAMETERS if row.check is not None}
+    assert sorted(CHECKED_AT_START) == sorted(with_check)
+    assert len(set(CHECKED_AT_START)) == len(CHECKED_AT_START)
