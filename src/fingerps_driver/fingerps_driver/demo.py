@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import signal
 import subprocess
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -39,15 +38,21 @@ from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.surface.ply import write_ply
 from fingerps_ros import qos, topics
+from fingerps_ros.command_line import EXIT_FAILED, CommandLineTool
 from fingerps_ros.image_conversion import image_to_array
 from fingerps_ros.point_cloud_conversion import cloud_to_points
-from fingerps_ros.privacy import start_private_tool, use_localhost_discovery
+from fingerps_ros.privacy import use_localhost_discovery
 from fingerps_ros.time_conversion import time_nanoseconds
 
 # Sphere placements for the light calibration (optical frame, metres): with two or more the
 # calibration also finds the LED positions, and reconstruction uses near lights.
 SPHERE_PLACEMENTS = ((2.0e-3, -1.5e-3, 0.094), (-4.0e-3, 2.0e-3, 0.092),
                      (4.5e-3, 2.5e-3, 0.097))
+
+TOOL = CommandLineTool("demo", bad_input=(), failed=(DemoError,), error_prefix="demo: ")
+"""How the demo starts and ends (fingerps_ros.command_line): a bad ``FINGERPS_UMASK`` or
+option is exit code 2; a step that fails (DemoError) is ``demo: <message>`` and exit code 1
+(a DemoError is not bad input: the options were fine, the graph did not deliver)."""
 
 GRAPH = (
     ("fingerps_driver", "driver_node"),
@@ -335,8 +340,8 @@ def run(args: argparse.Namespace) -> int:
         Path(args.figures).write_text(json.dumps(figures, indent=2) + "\n")
     bad = [name for (_, name), code in zip(GRAPH, codes, strict=True) if code != 0]
     if bad:
-        print(f"demo: {', '.join(bad)} did not exit cleanly; see {logs}", file=sys.stderr)
-        return 1
+        TOOL.error(f"{', '.join(bad)} did not exit cleanly; see {logs}")
+        return EXIT_FAILED
     return 0
 
 
@@ -360,11 +365,8 @@ def print_summary(f: dict[str, float], out: Path, codes: list[int]) -> None:
     print(f"  node exit codes                 : {codes}; total {f['total_s']:.1f} s")
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``ros2 run fingerps_driver demo``."""
-    if not start_private_tool("demo"):  # owner-only files (fingerps_ros.privacy)
-        return 2
-    use_localhost_discovery()  # the graph it starts talks to this machine only, by default
+def _parser() -> argparse.ArgumentParser:
+    """The demo's options."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--bags", default="bags", help="where the session is recorded")
@@ -375,14 +377,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--figures", help="also write the figures as JSON to this file")
     parser.add_argument("--model", choices=("lambert", "hk"), default="hk",
                         help="reflectance model of the reconstruction (default hk)")
-    args = parser.parse_args(argv)
-    if args.bursts < 1:
-        parser.error("--bursts must be at least 1")
-    try:
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``ros2 run fingerps_driver demo``: through :data:`TOOL` (owner-only
+    umask, the options, a DemoError as one line and exit code 1)."""
+    options = _parser()
+
+    def job(args: argparse.Namespace) -> int:
+        if args.bursts < 1:
+            options.error("--bursts must be at least 1")  # usage + error line, exit 2
+        use_localhost_discovery()  # the graph it starts talks to this machine only
         return run(args)
-    except DemoError as exc:
-        print(f"demo: {exc}", file=sys.stderr)
-        return 1
+
+    return TOOL.main(options, job, argv)
 
 
 if __name__ == "__main__":
