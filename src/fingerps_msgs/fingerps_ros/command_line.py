@@ -2,7 +2,7 @@
 line, the exit code.
 
 The tools (calibrate_camera, calibrate_lights, offline_recon, offline_tune, bag_recover,
-bringup) run their job through :meth:`CommandLineTool.main`:
+bringup, the demo) run their job through :meth:`CommandLineTool.main`:
 
 1. the owner-only umask (:func:`fingerps_ros.privacy.start_private_tool`; a bad
    ``FINGERPS_UMASK`` is one line on stderr and exit code 2);
