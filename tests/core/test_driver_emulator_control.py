@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 from led_history import masks_lit_since
+from polling import poll_until
 
 from fingerps_driver.board.board_emulator import BoardEmulatorControl, EmulatorControlServer, Fault
 from fingerps_driver.board.led_board import LedBoard
@@ -96,9 +97,7 @@ def test_deferred_power_cut_fails_the_burst_at_the_known_step(control, board, em
     assert result.error_type == "BoardDisconnectedError", result.reason
     assert "LED 2" in result.reason
     assert not board.is_open and board.acknowledged_mask is None
-    deadline = time.monotonic() + 2
-    while control.state()["connected"] and time.monotonic() < deadline:
-        time.sleep(0.01)
+    poll_until(lambda: not control.state()["connected"], 2, interval_s=0.01)
     assert not control.state()["connected"] and not os.path.exists(emulator.port)
     # the request was executed, then the board lost power
     masks = masks_lit_since(control.history(), start)

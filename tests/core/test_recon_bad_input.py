@@ -21,6 +21,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Point, Vector3
+from polling import poll_until
 from rclpy.context import Context
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
@@ -373,9 +374,7 @@ def test_the_worker_survives_an_unexpected_error(
             good = burst(rig, finger_images)
             good.burst_id = burst_id
             node._recon.on_burst(good)
-        deadline = time.monotonic() + 60.0
-        while node._recon.done + node._recon.failed < 2 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        poll_until(lambda: node._recon.done + node._recon.failed >= 2, 60.0, interval_s=0.05)
         assert (node._recon.failed, node._recon.unexpected, node._recon.done) == (1, 1, 1)
         assert node._worker.is_alive()
         level, message = node._recon.health()

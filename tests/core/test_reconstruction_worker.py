@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Vector3
+from polling import poll_until
 from sensor_msgs.msg import CameraInfo, Image
 
 from fingerps_driver.simulation import SimulatedRig
@@ -267,9 +268,7 @@ def test_the_queue_drops_the_oldest_and_the_worker_runs_the_rest(
     assert log.said("warning", "reconstruction is behind: dropped the oldest burst (1 so far)")
     thread = threading.Thread(target=worker.run)
     thread.start()
-    deadline = time.monotonic() + 10.0
-    while worker.done < 2 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    poll_until(lambda: worker.done >= 2, 10.0, interval_s=0.01)
     worker.stop()
     thread.join(timeout=10.0)
     assert not thread.is_alive()

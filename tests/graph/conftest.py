@@ -5,9 +5,12 @@
 - ``start_node(package, executable, *args)``: starts ``install/<pkg>/lib/<pkg>/<exe>`` (built
   by ``make build``) and returns a `NodeProcess`; every process still running at teardown is
   stopped (SIGINT, then SIGKILL of its process group).
-- ``wait_for(condition, what, timeout=...)``: polls a condition instead of sleeping blindly.
+- ``wait_for(condition, what, timeout=...)``: polls a condition instead of sleeping blindly
+  (tests/polling.py's ``poll_until``), failing the test on timeout.
 - ``spin_until(condition, what, timeout=...)``: spins ``ros_node`` until the condition holds;
   ``call_service(client, request)``: a service's response, spun until it arrives.
+- ``set_parameters(node_name, {name: value}, timeout=...)``: one SetParameters request to a
+  node of the namespace, each value typed from its Python type; returns the results.
 - ``driver_topics``: the test node's subscriptions of the driver's burst and frames topics
   and its capture_burst client.
 - ``start_recorder(session, lights=..., flush_period=...)``: a recorder_node recording what
@@ -31,9 +34,13 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Vector3
+from polling import poll_until
+from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.srv import SetParameters
 from rclpy.client import Client
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
@@ -53,16 +60,10 @@ FRAME_ID = "fingerps_camera_optical_frame"
 
 
 def wait_until(condition: Callable[[], object], what: str, *, timeout: float = 20.0,
-               period: float = 0.05) -> object:
+               period: float = 0.05) -> None:
     """Poll ``condition`` until it returns something truthy; fail the test after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        result = condition()
-        if result:
-            return result
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(period)
+    if not poll_until(condition, timeout, interval_s=period):
+        pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 @pytest.fixture
@@ -209,6 +210,31 @@ def call_service(spin_until: Callable[..., None]) -> Callable[..., object]:
         spin_until(future.done, what or f"the response of {client.srv_name}", timeout=timeout)
         return future.result()
     return call
+
+
+@pytest.fixture
+def set_parameters(ros_node: Node,
+                   call_service: Callable[..., object]) -> Callable[..., list[SetParametersResult]]:
+    """``set_parameters(node_name, values, timeout=30.0)``: sets ``values`` ({name: value})
+    on the node ``/fingerps/<node_name>`` in one SetParameters request, ``ros_node`` spun
+    until the response arrives; each value is typed from its Python type by
+    ``rclpy.parameter.Parameter`` (bool, int, float, str, or a list or tuple of one of them).
+    Returns the node's results (``successful``, ``reason``), one per value in order; the test
+    asserts on them."""
+    clients: dict[str, Client] = {}
+
+    def set_values(node_name: str, values: dict[str, object], *,
+                   timeout: float = 30.0) -> list[SetParametersResult]:
+        if node_name not in clients:
+            clients[node_name] = ros_node.create_client(
+                SetParameters, f"{NS}/{node_name}/set_parameters")
+        request = SetParameters.Request(parameters=[
+            Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+        response = call_service(clients[node_name], request,
+                                f"setting {', '.join(values)} on {node_name}", timeout=timeout)
+        assert len(response.results) == len(values), response.results
+        return list(response.results)
+    return set_values
 
 
 class DriverTopics(NamedTuple):

@@ -18,8 +18,7 @@ import signal
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import GetParameters, SetParameters
+from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo
@@ -225,45 +224,30 @@ def test_an_unexpected_error_in_a_callback_is_answered_logged_and_counted(
         rclpy.try_shutdown()
 
 
-def _set(client, name: str, value: ParameterValue, call_service):
-    response = call_service(client, SetParameters.Request(
-        parameters=[Parameter(name=name, value=value)]), timeout=60.0)
-    return response.results[0]
-
-
-def _double_array(values: list[float]) -> ParameterValue:
-    return ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=values)
-
-
 def test_bad_parameters_are_refused_with_a_reason(
-        ros_node: Node, start_node, call_service) -> None:
+        ros_node: Node, start_node, call_service, set_parameters) -> None:
     calib = _start_calib(ros_node, start_node)
-    setter = ros_node.create_client(SetParameters, f"{NS}/calib/set_parameters")
     getter = ros_node.create_client(GetParameters, f"{NS}/calib/get_parameters")
     names = ["reference_point", "camera_name", "sphere_radius"]
     before = call_service(getter, GetParameters.Request(names=names), timeout=60.0).values
 
     bad = [
-        ("reference_point", _double_array([0.0, 0.0, math.inf]), "finite"),
-        ("reference_point", _double_array([math.nan, 0.0, 0.09]), "finite"),
-        ("reference_point", _double_array([0.0, 0.0, -0.09]), "z > 0"),
-        ("camera_name", ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=""),
-         "not be empty"),
-        ("camera_name", ParameterValue(type=ParameterType.PARAMETER_STRING,
-                                       string_value="  "), "not be empty"),
+        ("reference_point", [0.0, 0.0, math.inf], "finite"),
+        ("reference_point", [math.nan, 0.0, 0.09], "finite"),
+        ("reference_point", [0.0, 0.0, -0.09], "z > 0"),
+        ("camera_name", "", "not be empty"),
+        ("camera_name", "  ", "not be empty"),
     ]
     for radius in (math.inf, math.nan, 1e-300, 1.0):
-        bad.append(("sphere_radius", ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
-                                                    double_value=radius), "sphere_radius"))
+        bad.append(("sphere_radius", radius, "sphere_radius"))
     for name, value, reason in bad:
-        result = _set(setter, name, value, call_service)
+        (result,) = set_parameters("calib", {name: value}, timeout=60.0)
         assert not result.successful, (name, value)
         assert reason in result.reason, result.reason
     after = call_service(getter, GetParameters.Request(names=names), timeout=60.0).values
     assert after == before
 
-    good = _set(setter, "camera_name", ParameterValue(
-        type=ParameterType.PARAMETER_STRING, string_value="rig_2"), call_service)
+    (good,) = set_parameters("calib", {"camera_name": "rig_2"}, timeout=60.0)
     assert good.successful, good.reason
     assert calib.running(), calib.output
     assert "Traceback" not in calib.output, calib.output

@@ -16,8 +16,6 @@ import signal
 
 import numpy as np
 import pytest
-from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 
 from fingerps_driver.simulation import SimulatedRig
@@ -33,13 +31,9 @@ FLAT_TOPIC = f"{NS}/{topics.FLAT_FIELD}"
 MAX_DIRECTION_ERROR_DEG = 0.5
 
 
-def _set_scene(node: Node, scene: str, call_service) -> None:
-    client = node.create_client(SetParameters, f"{NS}/driver/set_parameters")
-    value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=scene)
-    response = call_service(client, SetParameters.Request(
-        parameters=[Parameter(name="sim.scene", value=value)]))
-    assert response.results[0].successful, response.results[0].reason
-    node.destroy_client(client)
+def _set_scene(set_parameters, scene: str) -> None:
+    (result,) = set_parameters("driver", {"sim.scene": scene})
+    assert result.successful, result.reason
 
 
 def _late_joiner(node: Node, msg_type, topic: str, spin_until):
@@ -64,11 +58,11 @@ def _start_driver_and_calib(ros_node: Node, start_node):
 
 
 def test_flat_field_and_lights_through_the_driver(
-        ros_node: Node, start_node, spin_until, call_service) -> None:
+        ros_node: Node, start_node, spin_until, call_service, set_parameters) -> None:
     driver, calib = _start_driver_and_calib(ros_node, start_node)
     rig = SimulatedRig()  # the driver's rig (default RigConfig): the truth
 
-    _set_scene(ros_node, "white_target", call_service)
+    _set_scene(set_parameters, "white_target")
     flat_client = ros_node.create_client(CalibrateFlatField, f"{NS}/{topics.CALIBRATE_FLAT_FIELD}")
     flat = call_service(flat_client, CalibrateFlatField.Request())
     assert flat.success, flat.message
@@ -83,7 +77,7 @@ def test_flat_field_and_lights_through_the_driver(
     assert intensities.shape == (rig.led_count,) and intensities.max() == 1.0
     assert np.all(intensities > 0.5)
 
-    _set_scene(ros_node, "sphere", call_service)
+    _set_scene(set_parameters, "sphere")
     lights_client = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
     lights = call_service(lights_client,
                           CalibrateLights.Request(sphere_radius=rig.config.sphere_radius_m))
@@ -116,16 +110,16 @@ def test_flat_field_and_lights_through_the_driver(
 
 
 def test_refused_light_calibration_keeps_the_one_in_force(
-        ros_node: Node, start_node, spin_until, call_service) -> None:
+        ros_node: Node, start_node, spin_until, call_service, set_parameters) -> None:
     _start_driver_and_calib(ros_node, start_node)
     client = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
     request = CalibrateLights.Request(sphere_radius=SimulatedRig().config.sphere_radius_m)
 
-    _set_scene(ros_node, "sphere", call_service)
+    _set_scene(set_parameters, "sphere")
     good = call_service(client, request)
     assert good.success, good.message
 
-    _set_scene(ros_node, "finger", call_service)  # no sphere in view
+    _set_scene(set_parameters, "finger")  # no sphere in view
     refused = call_service(client, request)
     assert not refused.success
     assert "failed its checks" in refused.message and "silhouette" in refused.message, \

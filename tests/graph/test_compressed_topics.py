@@ -22,8 +22,6 @@ import cv2
 import numpy as np
 import pytest
 import rclpy
-from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -46,31 +44,17 @@ def _key(header: Header) -> tuple[int, int]:
     return header.stamp.sec, header.stamp.nanosec
 
 
-def _string(value: str) -> ParameterValue:
-    return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
-
-
-def _double_array(values) -> ParameterValue:
-    return ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY,
-                          double_array_value=[float(v) for v in values])
-
-
 class _Calls:
     """Service calls and parameter changes of the test node, spun until answered."""
 
-    def __init__(self, node: Node, call_service) -> None:
+    def __init__(self, node: Node, call_service, set_parameters) -> None:
         self.node = node
         self.call = functools.partial(call_service, timeout=60.0)  # (client, request, what)
+        self.set_parameters = set_parameters
 
-    def set_params(self, node_name: str, **values: ParameterValue) -> None:
-        client = self.node.create_client(SetParameters, f"{NS}/{node_name}/set_parameters")
-        request = SetParameters.Request(parameters=[
-            Parameter(name=name.replace("__", "."), value=value)
-            for name, value in values.items()])
-        response = self.call(client, request, f"setting {list(values)} on {node_name}")
-        for result in response.results:
+    def set_params(self, node_name: str, values: dict[str, object]) -> None:
+        for result in self.set_parameters(node_name, values, timeout=60.0):
             assert result.successful, result.reason
-        self.node.destroy_client(client)
 
     def capture(self) -> None:
         client = self.node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
@@ -103,7 +87,8 @@ def _depth_from_compressed_depth(message: CompressedImage) -> tuple[np.ndarray, 
 
 
 def test_recon_companions_equal_the_raw_outputs(ros_node: Node, start_node, spin_until,
-                                                call_service, tmp_path) -> None:
+                                                call_service, set_parameters,
+                                                tmp_path) -> None:
     raw: dict[str, dict] = defaultdict(dict)
     packed: dict[str, dict] = defaultdict(dict)
     companions = {topics.NORMAL_MAP: "compressed", topics.FINGERPRINT: "compressed",
@@ -126,14 +111,14 @@ def test_recon_companions_equal_the_raw_outputs(ros_node: Node, start_node, spin
     spin_until(lambda: all(s.get_publisher_count() >= 1 for s in subscriptions),
                "recon's compressed publishers")
 
-    calls = _Calls(ros_node, call_service)
+    calls = _Calls(ros_node, call_service, set_parameters)
     lights = ros_node.create_client(CalibrateLights, f"{NS}/calibrate_lights")
     for i, center in enumerate(SPHERE_PLACEMENTS):
-        calls.set_params("driver", sim__sphere_center=_double_array(center))
+        calls.set_params("driver", {"sim.sphere_center": center})
         response = calls.call(lights, CalibrateLights.Request(
             sphere_radius=0.004, add_placement=i > 0), f"light placement {i}")
         assert response.success, response.message
-    calls.set_params("driver", sim__scene=_string("finger"))
+    calls.set_params("driver", {"sim.scene": "finger"})
 
     def burst_out(keys_before: set) -> tuple[int, int]:
         """Capture until a burst's raw and compressed outputs have all arrived."""
@@ -177,7 +162,7 @@ def test_recon_companions_equal_the_raw_outputs(ros_node: Node, start_node, spin
                                   decoded[finite])
 
     # the format is read at every publish: jpeg from the next burst on
-    calls.set_params("recon", normal_map__compressed__format=_string("jpeg"))
+    calls.set_params("recon", {"normal_map.compressed.format": "jpeg"})
     key = burst_out(set(packed[topics.NORMAL_MAP]))
     message = packed[topics.NORMAL_MAP][key]
     assert message.format == "rgb8; jpeg compressed bgr8"
@@ -270,7 +255,7 @@ IMAGE_RAW_ON = ("image_raw.enable_pub_plugins:="
 
 @pytest.mark.parametrize(("bit_depth", "encoding"), [(8, "mono8"), (12, "mono16")])
 def test_driver_image_raw_companion_is_exact(ros_node: Node, start_node, spin_until,
-                                             call_service, bit_depth: int,
+                                             call_service, set_parameters, bit_depth: int,
                                              encoding: str) -> None:
     """Needs driver_node wired with CompressedTopics for image_raw (skipped until it is)."""
     raw: dict[tuple[int, int], Image] = {}
@@ -285,7 +270,7 @@ def test_driver_image_raw_companion_is_exact(ros_node: Node, start_node, spin_un
     driver.wait_in_graph(ros_node, "driver", NS)
     spin_until(lambda: compressed_sub.get_publisher_count() >= 1,
                "the driver's image_raw/compressed publisher")
-    _Calls(ros_node, call_service).capture()
+    _Calls(ros_node, call_service, set_parameters).capture()
     deadline = time.monotonic() + 10.0
 
     def matched() -> list[tuple[int, int]]:

@@ -10,9 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from rcl_interfaces.msg import Parameter as ParameterMsg
-from rcl_interfaces.msg import ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 
 from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, save_camera_info
@@ -38,7 +35,7 @@ def _folder(path: Path, sizes=None) -> Path:
 
 
 def test_folder_camera_replays_the_led_images_in_the_planned_order(
-        ros_node: Node, start_node, spin_until, call_service, driver_topics,
+        ros_node: Node, start_node, spin_until, call_service, set_parameters, driver_topics,
         tmp_path: Path) -> None:
     folder = _folder(tmp_path / "capture")
     info_file = tmp_path / "camera.yaml"
@@ -74,14 +71,8 @@ def test_folder_camera_replays_the_led_images_in_the_planned_order(
     spin_until(lambda: bursts, "the burst on its topic")
 
     # a bad value set at run time is refused with a reason, the good one taken
-    set_params = ros_node.create_client(SetParameters, f"{NS}/driver/set_parameters")
-
     def set_order(order):
-        value = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY,
-                               integer_array_value=order)
-        request = SetParameters.Request(parameters=[ParameterMsg(name="led_order",
-                                                                 value=value)])
-        return call_service(set_params, request).results[0]
+        return set_parameters("driver", {"led_order": order})[0]
 
     refused = set_order([0, 0, 1])
     assert not refused.successful and "more than once" in refused.reason

@@ -7,9 +7,6 @@ import signal
 
 import cv2
 import numpy as np
-from rcl_interfaces.msg import Parameter as ParameterMsg
-from rcl_interfaces.msg import ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
@@ -37,18 +34,14 @@ def _ridges(image: np.ndarray) -> np.ndarray:
 
 
 def test_the_driver_shows_the_fingerprint_it_is_given_and_takes_a_new_pose(
-        ros_node: Node, start_node, call_service) -> None:
+        ros_node: Node, start_node, call_service, set_parameters) -> None:
     driver = start_node("fingerps_driver", "driver_node", "--ros-args",
                         "-p", "sim.finger_identity:=3")
     driver.wait_in_graph(ros_node, "driver", NS, timeout=60.0)
     capture = ros_node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
-    set_params = ros_node.create_client(SetParameters, f"{NS}/driver/set_parameters")
 
     def set_roll(value: float):
-        request = SetParameters.Request(parameters=[ParameterMsg(
-            name="sim.finger_roll_deg",
-            value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))])
-        return call_service(set_params, request, timeout=60.0).results[0]
+        return set_parameters("driver", {"sim.finger_roll_deg": value}, timeout=60.0)[0]
 
     def ridge_match(frame: np.ndarray, config: RigConfig) -> float:
         reference = SimulatedRig(config).noiseless(Scene.FINGER, [0])

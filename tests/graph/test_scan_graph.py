@@ -12,11 +12,9 @@ import numpy as np
 import pytest
 from action_msgs.msg import GoalStatus
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import Parameter as ParameterMsg
-from rcl_interfaces.msg import ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
 from rclpy.action import ActionClient
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from fingerps_driver.board.board_emulator import BoardEmulatorControl
@@ -39,29 +37,16 @@ def calibration_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("calibration")
 
 
-def _value(value: object) -> ParameterValue:
-    if isinstance(value, str):
-        return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
-    if isinstance(value, bool):
-        return ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value)
-    if isinstance(value, int):
-        return ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
-    if isinstance(value, float):
-        return ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
-    return ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY,
-                          double_array_value=[float(v) for v in value])
-
-
 class _Graph:
     """The processes and the test's clients."""
 
-    def __init__(self, ros_node: Node, start_node, spin_until, call_service, tmp_path: Path,
-                 calibration_dir: Path) -> None:
+    def __init__(self, ros_node: Node, start_node, spin_until, call_service, set_parameters,
+                 tmp_path: Path, calibration_dir: Path) -> None:
         self.node, self.start_node, self.spin_until = ros_node, start_node, spin_until
         self.call = functools.partial(call_service, timeout=60.0)  # (client, request, what)
+        self.set_parameters = set_parameters
         self.tmp_path, self.calibration_dir = tmp_path, calibration_dir
         self.scan = ActionClient(ros_node, Scan, f"{NS}/scan")
-        self.set_driver = ros_node.create_client(SetParameters, f"{NS}/driver/set_parameters")
         self.rejections: list[str] = []
         self.scan_status: dict[str, str] = {}
         ros_node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
@@ -90,10 +75,8 @@ class _Graph:
         self.calibrate()
 
     def set_param(self, name: str, value: object) -> None:
-        request = SetParameters.Request(parameters=[ParameterMsg(name=name,
-                                                                 value=_value(value))])
-        response = self.call(self.set_driver, request, f"setting {name}")
-        assert response.results[0].successful, response.results[0].reason
+        (result,) = self.set_parameters("driver", {name: value}, timeout=60.0)
+        assert result.successful, result.reason
 
     def calibrate(self) -> None:
         """Flat field and lights (three sphere placements), unless already saved."""
@@ -131,8 +114,10 @@ class _Graph:
 
 
 @pytest.fixture
-def graph(ros_node, start_node, spin_until, call_service, tmp_path, calibration_dir) -> _Graph:
-    return _Graph(ros_node, start_node, spin_until, call_service, tmp_path, calibration_dir)
+def graph(ros_node, start_node, spin_until, call_service, set_parameters, tmp_path,
+          calibration_dir) -> _Graph:
+    return _Graph(ros_node, start_node, spin_until, call_service, set_parameters, tmp_path,
+                  calibration_dir)
 
 
 def test_scan_with_a_finger_meets_the_accuracy_and_bad_goals_are_rejected(graph) -> None:
@@ -184,10 +169,10 @@ def test_scan_with_a_finger_meets_the_accuracy_and_bad_goals_are_rejected(graph)
         (Scan.Goal(bursts=0), "bursts 0"),
         (Scan.Goal(bursts=1, model="phong"), "unknown model 'phong'"),
         (Scan.Goal(bursts=1, timeout=-1.0), "timeout -1.0"),
-        (Scan.Goal(bursts=1, overrides=[ParameterMsg(name="max_motion", value=_value(1.0))]),
+        (Scan.Goal(bursts=1, overrides=[Parameter("max_motion", value=1.0).to_parameter_msg()]),
          "override 'max_motion'"),
-        (Scan.Goal(bursts=1, overrides=[ParameterMsg(name="max_motion_px",
-                                                     value=_value("x"))]),
+        (Scan.Goal(bursts=1, overrides=[Parameter("max_motion_px",
+                                                  value="x").to_parameter_msg()]),
          "override 'max_motion_px'"),
     ]
     for goal, reason in bad:
@@ -230,7 +215,7 @@ def test_a_finger_moving_mid_burst_is_rejected_and_retaken(graph) -> None:
     # a finger that never stops: retaken up to max_retakes, then aborted saying so
     graph.set_param("sim.finger_motion_bursts", 0)
     handle = graph.send(Scan.Goal(bursts=1, model="lambert", timeout=60.0, overrides=[
-        ParameterMsg(name="max_retakes", value=_value(2))]))
+        Parameter("max_retakes", value=2).to_parameter_msg()]))
     done = graph.result(handle)
     assert done.status == GoalStatus.STATUS_ABORTED
     assert "kept moving" in done.result.message
