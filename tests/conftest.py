@@ -13,6 +13,8 @@
 - ``emulator``: a 7-LED board emulator on a pseudo-terminal; ``emulator_threads()`` its live
   threads, and ``no_emulator_threads_left`` (for ``pytest.mark.usefixtures``) fails a test
   that leaves one running.
+- ``emulator_script(*args)``: the emulator's console script in a process of its own
+  (``python -m fingerps_driver.board.board_emulator``), killed at teardown if still running.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from __future__ import annotations
 import fcntl
 import os
 import random
+import subprocess
+import sys
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
@@ -137,3 +141,27 @@ def emulator(tmp_path: Path) -> Iterator[BoardEmulator]:
     from fingerps_driver.board.board_emulator import BoardEmulator
     with BoardEmulator(7, link_path=str(tmp_path / "board")) as emu:
         yield emu
+
+
+@pytest.fixture
+def emulator_script() -> Iterator[Callable[..., subprocess.Popen]]:
+    """``emulator_script(*args)`` starts ``python -m fingerps_driver.board.board_emulator
+    *args`` with this process's ``sys.path``, its stdout a text pipe; a process still running at
+    teardown is killed."""
+    started: list[subprocess.Popen] = []
+
+    def start(*args: str) -> subprocess.Popen:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+        process = subprocess.Popen(
+            [sys.executable, "-m", "fingerps_driver.board.board_emulator", *args],
+            stdout=subprocess.PIPE, text=True, env=env)
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        if process.stdout is not None:
+            process.stdout.close()

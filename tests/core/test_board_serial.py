@@ -3,8 +3,6 @@
 import os
 import signal
 import statistics
-import subprocess
-import sys
 import time
 
 import pytest
@@ -194,22 +192,12 @@ def test_set_leds_round_trip_latency(board, emulator):
     assert board.resends == 0
 
 
-def test_console_script_serves_until_sigterm(tmp_path):
+def test_console_script_serves_until_sigterm(tmp_path, emulator_script):
     link = tmp_path / "cli_board"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "fingerps_driver.board.board_emulator", "--link", str(link)],
-        stdout=subprocess.PIPE, text=True, env=env,
-    )
-    try:
-        assert "Ctrl-C" in process.stdout.readline()
-        with LedBoard(str(link)) as client:
-            assert client.set_leds(1 << 6) == 1 << 6
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=5) == 0
-        assert not link.exists()
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        process.stdout.close()
+    process = emulator_script("--link", str(link))
+    assert "Ctrl-C" in process.stdout.readline()
+    with LedBoard(str(link)) as client:
+        assert client.set_leds(1 << 6) == 1 << 6
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(timeout=5) == 0
+    assert not link.exists()

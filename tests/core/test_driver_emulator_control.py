@@ -7,8 +7,6 @@ with LedBoard and capture_burst on the serial side. One test runs the console sc
 
 import os
 import signal
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -174,28 +172,19 @@ def test_a_camera_that_cannot_see_the_board_gives_no_frame(tmp_path):
         camera.grab(timeout_s=0.1)
 
 
-def test_console_script_serves_the_control_channel(tmp_path):
+def test_console_script_serves_the_control_channel(tmp_path, emulator_script):
     link, path = tmp_path / "board", tmp_path / "control"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "fingerps_driver.board.board_emulator", "--link", str(link),
-         "--control", str(path)], stdout=subprocess.PIPE, text=True, env=env)
-    try:
-        assert f"control {path}" in process.stdout.readline()
-        with LedBoard(str(link)) as board, BoardEmulatorControl(str(path)) as control:
-            board.set_leds(1 << 5)
-            assert control.lit_leds() == (5,)
-            control.inject(Fault.DROP_REPLY)
-            assert board.set_leds(1 << 6) == 1 << 6 and board.resends == 1
-            control.disconnect()
-            assert not link.exists()
-            control.reconnect()
-            assert link.exists()
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=5) == 0
-        assert not link.exists() and not path.exists()
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        process.stdout.close()
+    process = emulator_script("--link", str(link), "--control", str(path))
+    assert f"control {path}" in process.stdout.readline()
+    with LedBoard(str(link)) as board, BoardEmulatorControl(str(path)) as control:
+        board.set_leds(1 << 5)
+        assert control.lit_leds() == (5,)
+        control.inject(Fault.DROP_REPLY)
+        assert board.set_leds(1 << 6) == 1 << 6 and board.resends == 1
+        control.disconnect()
+        assert not link.exists()
+        control.reconnect()
+        assert link.exists()
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(timeout=5) == 0
+    assert not link.exists() and not path.exists()

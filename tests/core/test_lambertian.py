@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from analytic_surfaces import sphere_normals
 
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric import kernel_threads
@@ -40,14 +41,8 @@ def _worst_cond(lights: np.ndarray, usable: np.ndarray, where: np.ndarray) -> fl
 
 
 def _sphere(size: int = 81) -> tuple[np.ndarray, np.ndarray]:
-    """Normals (H, W, 3) of an orthographic sphere (PS frame, y up) and its mask."""
-    r = (size - 1) / 2 - 0.5
-    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
-    x = (u - (size - 1) / 2) / r
-    y = -(v - (size - 1) / 2) / r
-    mask = x**2 + y**2 < 1
-    z = np.sqrt(np.clip(1 - x**2 - y**2, 0, None))
-    normals = np.where(mask[..., None], np.stack([x, y, z], axis=-1), 0.0)
+    """Normals (H, W, 3) of an orthographic sphere filling a size x size image, and its mask."""
+    normals, mask, _ = sphere_normals(size, size, radius_px=(size - 1) / 2 - 0.5)
     return normals, mask
 
 

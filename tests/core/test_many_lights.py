@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from analytic_surfaces import sphere_normals
 
 from fingerps_recon.photometric import hk_solver
 from fingerps_recon.photometric.angular_error import angular_error_deg
@@ -33,12 +34,8 @@ def _lights(count: int = K) -> np.ndarray:
 
 def _cap(size: int = 51) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (H, W, 3) of a sphere cap out to 72 degrees (PS frame) and its mask."""
-    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
-    half = (size - 1) / 2
-    x, y = (u - half) / (half - 0.5), -(v - half) / (half - 0.5)
-    mask = x**2 + y**2 < 0.9
-    z = np.sqrt(np.clip(1 - x**2 - y**2, 1e-6, None))
-    return np.where(mask[..., None], np.stack([x, y, z], axis=-1), 0.0), mask
+    normals, mask, _ = sphere_normals(size, size, radius_px=(size - 1) / 2 - 0.5, within=0.9)
+    return normals, mask
 
 
 def test_lambertian_with_96_lights_distant_and_per_pixel() -> None:

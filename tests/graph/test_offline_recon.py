@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import pytest
 import scipy.io
+from analytic_surfaces import sphere_normals
 from diligent_cases import CASES, spoil_folder
 
 from fingerps_driver.simulation import Scene, SimulatedRig
@@ -51,24 +52,13 @@ def _lights(count: int) -> np.ndarray:
                      np.cos(tilt)], axis=1)
 
 
-def _sphere(height: int, width: int, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Normals (H, W, 3) in the PS frame, mask, and height (pixels) of a centred sphere."""
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    x, y = (u - (width - 1) / 2) / radius, -(v - (height - 1) / 2) / radius
-    r2 = x * x + y * y
-    mask = r2 < 1.0
-    nz = np.sqrt(np.clip(1.0 - r2, 0.0, None))
-    normals = np.where(mask[..., None], np.stack([x, y, nz], axis=2), 0.0)
-    return normals, mask, nz * radius
-
-
 def _write_sphere(folder: Path, *, colour16: bool, size: tuple[int, int] = (120, 140),
                   radius: float = 50.0, count: int = 12) -> tuple[np.ndarray, np.ndarray,
                                                                   np.ndarray]:
     """Render the sphere into a DiLiGenT-layout folder with mask.png and Normal_gt.mat."""
     folder.mkdir(parents=True)
     lights = _lights(count)
-    normals, mask, height = _sphere(*size, radius)
+    normals, mask, height = sphere_normals(*size, radius_px=radius)
     shading = np.clip(np.einsum("hwc,kc->khw", normals, lights), 0.0, None)
     names = [f"{i + 1:03d}.png" for i in range(count)]
     if colour16:
