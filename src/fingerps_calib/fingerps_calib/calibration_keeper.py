@@ -62,6 +62,7 @@ from fingerps_calib.lights.sphere_calibration import (
     calibrate_lights,
     check_radius,
 )
+from fingerps_recon.photometric.full_scale import MONO16_DEFAULT
 from fingerps_ros.log import Log
 
 DEFAULT_FRAME_ID = "fingerps_camera_optical_frame"
@@ -96,7 +97,7 @@ class CalibrationSettings:
     reference_point_optical_m: tuple[float, float, float] = (0.0, 0.0025, 0.09)
     sphere_distance_tolerance: float = 0.3
     flat_field_degree: int = 4
-    mono16_full_scale: float = 4095.0
+    mono16_full_scale: float = MONO16_DEFAULT
 
 
 @dataclass(frozen=True, eq=False)

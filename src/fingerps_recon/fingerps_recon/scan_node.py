@@ -33,7 +33,8 @@ from fingerps_msgs.action import Scan
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_recon.errors import FingerpsReconError, ScanAbortedError
-from fingerps_recon.photometric.pipeline import ReconstructionOptions, full_scale_of
+from fingerps_recon.photometric.full_scale import full_scale_of
+from fingerps_recon.photometric.pipeline import ReconstructionOptions
 from fingerps_recon.reconstruction.burst_reconstruction import (
     BurstReconstruction,
     PreparedCalibrations,

@@ -53,13 +53,9 @@ from fingerps_recon.offline.parameter_sweep import (
     sweep_burst,
 )
 from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.photometric.full_scale import full_scale_of
 from fingerps_recon.photometric.normal_map import normal_map_rgb
-from fingerps_recon.photometric.pipeline import (
-    Model,
-    Projection,
-    ReconstructionOptions,
-    full_scale_of,
-)
+from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.surface.ply import write_ply
 from fingerps_ros.command_line import CommandLineTool
 from fingerps_ros.errors import FingerpsError

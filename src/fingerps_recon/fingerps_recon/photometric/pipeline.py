@@ -38,7 +38,6 @@ from fingerps_recon.surface.integration import (
     integrate_normals,
     integrate_normals_perspective,
 )
-from fingerps_ros.parameter_table import ParameterRow, check_finite
 
 # Smallest cosine between a near light and the white target's normal used to turn the
 # target's brightness into irradiance (a steeper light would amplify the target's noise).
@@ -64,25 +63,6 @@ class Projection(Enum):
     PERSPECTIVE = "perspective"     # pinhole camera with the camera matrix K
     ORTHOGRAPHIC = "orthographic"   # pixel size = working distance / fx
 
-
-
-FULL_SCALE = {"mono8": 255.0, "mono16": 4095.0}
-"""Largest grey level of each image encoding a burst may have (mono16: 12-bit sensors, the
-default of the nodes' ``mono16_full_scale``)."""
-
-
-def full_scale_of(encoding: str, *, mono16_full_scale: float = 4095.0) -> float:
-    """The ``full_scale`` to reconstruct images of ``encoding`` with: ``mono16_full_scale``
-    for mono16, else the encoding's `FULL_SCALE` (255 for an encoding not listed)."""
-    return mono16_full_scale if encoding == "mono16" else FULL_SCALE.get(encoding, 255.0)
-
-
-MONO16_FULL_SCALE = ParameterRow(
-    "mono16_full_scale", FULL_SCALE["mono16"],
-    "Largest value of a mono16 image (4095 for 12-bit sensors)", min_value=1.0,
-    max_value=65535.0, check=check_finite)
-"""The ``mono16_full_scale`` parameter of every node that reads mono16 images (recon_node,
-scan_node, calib_node): one row of their tables (``fingerps_ros.parameter_table``)."""
 
 @dataclass(frozen=True)
 class ReconstructionOptions:

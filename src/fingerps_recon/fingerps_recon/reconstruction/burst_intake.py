@@ -17,12 +17,8 @@ from sensor_msgs.msg import Image
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon.errors import FingerpsReconError, IncompleteBurstError
 from fingerps_recon.photometric.frames import optical_to_ps
-from fingerps_recon.photometric.pipeline import (
-    FULL_SCALE,
-    check_calibration,
-    check_portions,
-    full_scale_of,
-)
+from fingerps_recon.photometric.full_scale import FULL_SCALE, MONO16_DEFAULT, full_scale_of
+from fingerps_recon.photometric.pipeline import check_calibration, check_portions
 from fingerps_ros.image_conversion import image_to_array, images_to_array
 
 
@@ -61,7 +57,7 @@ def check_burst_size(burst: Burst, limits: BurstLimits) -> None:
         _check_image_size(image, limits, "image")
 
 
-def burst_inputs(burst: Burst, led_count: int, *, mono16_full_scale: float = 4095.0,
+def burst_inputs(burst: Burst, led_count: int, *, mono16_full_scale: float = MONO16_DEFAULT,
                  limits: BurstLimits | None = None) -> BurstInputs:
     """The arrays of a Burst message for a calibration of ``led_count`` LEDs; raises
     ``FingerpsReconError`` on a burst beyond ``limits`` (:func:`check_burst_size`), a

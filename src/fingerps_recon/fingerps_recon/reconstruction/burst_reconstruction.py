@@ -15,6 +15,7 @@ import numpy as np
 
 from fingerps_msgs.msg import Burst, LightCalibration
 from fingerps_recon.errors import EmptyReconstructionError
+from fingerps_recon.photometric.full_scale import MONO16_DEFAULT
 from fingerps_recon.photometric.pipeline import (
     PreparedCalibration,
     Reconstruction,
@@ -82,7 +83,7 @@ class PreparedCalibrations:
 
 
 def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndarray | None,
-                      *, options: ReconstructionOptions, mono16_full_scale: float = 4095.0,
+                      *, options: ReconstructionOptions, mono16_full_scale: float = MONO16_DEFAULT,
                       prepared: PreparedCalibrations | None = None,
                       limits: BurstLimits | None = None) -> BurstReconstruction:
     """Reconstruct a Burst message with a light calibration and flat-field maps (K, H, W)

@@ -6,13 +6,9 @@ from __future__ import annotations
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
 from fingerps_recon.photometric.kernel_threads import set_thread_limit
-from fingerps_recon.photometric.pipeline import (
-    MONO16_FULL_SCALE,
-    Model,
-    Projection,
-    ReconstructionOptions,
-)
+from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.worker import ReconSettings
 from fingerps_ros.parameter_table import ParameterRow, one_of

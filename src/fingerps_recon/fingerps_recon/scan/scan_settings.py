@@ -17,12 +17,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from fingerps_recon.errors import ImpossibleGoalError
-from fingerps_recon.photometric.pipeline import (
-    MONO16_FULL_SCALE,
-    Model,
-    Projection,
-    ReconstructionOptions,
-)
+from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
+from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.scan.quality import QualityThresholds
 from fingerps_ros.parameter_table import ParameterRow, one_of
 
