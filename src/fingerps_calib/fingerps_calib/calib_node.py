@@ -82,9 +82,10 @@ class CalibNode(Node):
         self._pub_flat = self.create_publisher(FlatField, topics.FLAT_FIELD,
                                                qos.CALIBRATION_QOS)
         self._calls = ServiceCalls()
-        # the last calibration published, with its record: a service's answer reuses it
-        self._sent_lights: tuple[LightsRecord | None, LightCalibration | None] = (None, None)
-        self._sent_flat: tuple[FlatFieldRecord | None, FlatField | None] = (None, None)
+        # the last calibration published: a service's answer is the message the keeper has
+        # just published (it publishes what it puts in force before it answers)
+        self._sent_lights: LightCalibration | None = None
+        self._sent_flat: FlatField | None = None
         self._diagnostics = DiagnosticsPublisher(self, self._statuses)
         self._keeper = CalibrationKeeper(
             directory, file_camera=file_camera, log=self.get_logger(),
@@ -107,12 +108,12 @@ class CalibNode(Node):
         self._camera_info = msg
 
     def _publish_lights(self, record: LightsRecord, intensities: list[float]) -> None:
-        self._sent_lights = (record, lights_message(record, intensities))
-        self._pub_lights.publish(self._sent_lights[1])
+        self._sent_lights = lights_message(record, intensities)
+        self._pub_lights.publish(self._sent_lights)
 
     def _publish_flat(self, record: FlatFieldRecord) -> None:
-        self._sent_flat = (record, flat_field_message(record))
-        self._pub_flat.publish(self._sent_flat[1])
+        self._sent_flat = flat_field_message(record)
+        self._pub_flat.publish(self._sent_flat)
 
     # ------------------------------------------------------------------ answers, diagnostics
     def _answering(self, service: str, handler: Callable) -> Callable:
@@ -181,10 +182,8 @@ class CalibNode(Node):
             sphere_radius_m=request.sphere_radius, add_placement=request.add_placement,
             settings=calibration_settings(self))
         response.success, response.message = answer.success, answer.message
-        if answer.lights is not None:  # put in force, so just published
-            record, msg = self._sent_lights
-            response.calibration = msg if record is answer.lights else lights_message(
-                answer.lights, answer.relative_intensities)
+        if answer.lights is not None and self._sent_lights is not None:  # just published
+            response.calibration = self._sent_lights
         return response
 
     def _on_flat(self, request: CalibrateFlatField.Request,
@@ -193,10 +192,8 @@ class CalibNode(Node):
             lambda: self._shots(list(request.frames), with_dark=True),
             settings=calibration_settings(self))
         response.success, response.message = answer.success, answer.message
-        if answer.flat is not None:  # put in force, so just published
-            record, msg = self._sent_flat
-            response.flat_field = msg if record is answer.flat else flat_field_message(
-                answer.flat)
+        if answer.flat is not None and self._sent_flat is not None:  # just published
+            response.flat_field = self._sent_flat
         return response
 
 

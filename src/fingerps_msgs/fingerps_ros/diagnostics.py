@@ -1,8 +1,9 @@
 """A node's ``/diagnostics``: its statuses as one stamped ``DiagnosticArray``.
 
-Every fingerps node publishes its statuses once a second and at once when something it
-reports changes (diagnostic_updater's habit, without its dependency); the statuses come from
-the node's plain core (``driver_diagnostics``, ``calib_diagnostics``,
+Every fingerps node publishes its statuses once a second from a timer of its own
+(``PERIOD_S``, diagnostic_updater's habit without its dependency), and the driver, calib and
+scan nodes also at once when something they report changes; the statuses come from the
+node's plain core (``driver_diagnostics``, ``calib_diagnostics``,
 ``reconstruction.diagnostics`` ...).
 """
 

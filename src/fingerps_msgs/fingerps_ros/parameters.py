@@ -27,35 +27,22 @@ class UnknownParameterError(Exception):
     """A parameter file or --ros-args set a parameter the node does not have."""
 
 
-def descriptor(
-    description: str,
-    *,
-    min_value: float | None = None,
-    max_value: float | None = None,
-    integer: bool = False,
-    read_only: bool = False,
-    constraints: str = "",
-) -> ParameterDescriptor:
-    """Return a ParameterDescriptor with a description and, if given, a numeric range."""
+def row_descriptor(row: ParameterRow) -> ParameterDescriptor:
+    """The ParameterDescriptor of a row of a parameter table (what ``ros2 param describe``
+    shows of it): description, read-only, constraints, dynamic typing and, if the row has
+    bounds, its numeric range (an open side unbounded)."""
     desc = ParameterDescriptor(
-        description=description, read_only=read_only, additional_constraints=constraints)
-    if min_value is not None or max_value is not None:
-        lo = min_value if min_value is not None else (-(2**62) if integer else -1e300)
-        hi = max_value if max_value is not None else (2**62 if integer else 1e300)
+        description=row.description, read_only=row.read_only,
+        additional_constraints=row.constraints, dynamic_typing=row.dynamic_typing)
+    if row.min_value is not None or row.max_value is not None:
+        integer = row.integer
+        lo = row.min_value if row.min_value is not None else (-(2**62) if integer else -1e300)
+        hi = row.max_value if row.max_value is not None else (2**62 if integer else 1e300)
         if integer:
             desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
         else:
             desc.floating_point_range = [
                 FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
-    return desc
-
-
-def row_descriptor(row: ParameterRow) -> ParameterDescriptor:
-    """The ParameterDescriptor of a row of a parameter table (what ``ros2 param describe``
-    shows of it)."""
-    desc = descriptor(row.description, min_value=row.min_value, max_value=row.max_value,
-                      integer=row.integer, read_only=row.read_only, constraints=row.constraints)
-    desc.dynamic_typing = row.dynamic_typing
     return desc
 
 

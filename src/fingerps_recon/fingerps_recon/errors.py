@@ -124,20 +124,18 @@ class McapDamageError(FingerpsReconError):
         What is wrong there.
     file_size : int
         Size of the file in bytes.
-    chunk_span_ns : tuple[int, int] or None
-        Log-time range of the first damaged chunk when its header could still be read.
     damage : tuple[DamagedRange, ...]
-        Every damaged range (empty for a file that is no MCAP at all).
+        Every damaged range (empty for a file that is no MCAP at all); the first one's
+        ``span_ns`` is the log-time range of the first damaged chunk when its header could
+        still be read.
     """
 
     def __init__(self, path: Path, offset: int, reason: str, file_size: int,
-                 chunk_span_ns: tuple[int, int] | None = None,
                  damage: tuple[DamagedRange, ...] = ()) -> None:
         self.path = Path(path)
         self.offset = offset
         self.reason = reason
         self.file_size = file_size
-        self.chunk_span_ns = chunk_span_ns
         self.damage = damage
         more = ""
         if len(damage) > 1:

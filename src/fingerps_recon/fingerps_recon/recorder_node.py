@@ -139,8 +139,8 @@ class RecorderNode(Node):
 
     def __init__(self) -> None:
         super().__init__("recorder", namespace=topics.NAMESPACE)
-        self._checks = declare_parameters(self, recorder_parameters(self.resolve_topic_name))
-        self._checks.refuse_unknown_overrides(self)
+        checks = declare_parameters(self, recorder_parameters(self.resolve_topic_name))
+        checks.refuse_unknown_overrides(self)
 
         self._shutdown_logger = rclpy.logging.get_logger(f"{self.get_logger().name}.bag")
         self._use_sim_time = bool(self.get_parameter("use_sim_time").value)

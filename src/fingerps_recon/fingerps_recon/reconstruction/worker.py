@@ -51,10 +51,11 @@ from fingerps_ros.errors import FingerpsError
 from fingerps_ros.log import Log
 from fingerps_ros.time_conversion import time_nanoseconds
 
-# Outcome of a burst, for the health level.
-_OK, _WARN, _BAD = 0, 1, 2
 _T = TypeVar("_T")
 
+# Outcome of a burst, for the health level.
+_OK, _WARN, _BAD = 0, 1, 2
+_LIGHTS, _FLAT = "light calibration", "flat field"  # the calibrations a burst uses, by name
 
 
 @dataclass(frozen=True)
@@ -145,16 +146,16 @@ class ReconstructionWorker:
         return run
 
     # ------------------------------------------------------------------ intake
-    def _checked(self, kind: str, check: Callable[[], _T]) -> _T | None:
+    def _checked(self, kind: str, check: Callable[[], _T], *, held: object) -> _T | None:
         """Run a calibration message's ``check``: its result, or None once the message is
-        refused (counted, logged, and WARN until one of its ``kind`` is accepted)."""
+        refused (counted, logged, and WARN until one of its ``kind`` is accepted); ``held``
+        is the calibration of that kind in force now (None: none)."""
         try:
             result = check()
         except FingerpsError as exc:
             self.calibrations_refused += 1
             self._refused[kind] = str(exc)
             self.last_problem = f"{kind} refused: {exc}"
-            held = self.lights if kind == "light calibration" else self._flat_maps
             self._log.error(f"{self.last_problem}; "
                             + ("the previous one stays in force" if held is not None
                                else "none is in force"))
@@ -164,14 +165,15 @@ class ReconstructionWorker:
 
     def on_lights(self, msg: LightCalibration) -> None:
         """A light calibration: in force from the next burst on, unless it is refused."""
-        lights = self._checked("light calibration", lambda: check_light_calibration(msg))
+        lights = self._checked(_LIGHTS, lambda: check_light_calibration(msg), held=self.lights)
         if lights is not None:
             self.lights = lights
             self._log.info(f"light calibration received: {len(msg.directions)} LEDs")
 
     def on_flat(self, msg: FlatField) -> None:
         """A flat field: in force from the next burst on, unless it is refused."""
-        maps = self._checked("flat field", lambda: flat_field_maps(msg, self._settings().limits))
+        maps = self._checked(_FLAT, lambda: flat_field_maps(msg, self._settings().limits),
+                             held=self._flat_maps)
         if maps is not None:
             self._flat_maps = maps
             self._log.info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
@@ -301,7 +303,7 @@ class ReconstructionWorker:
         start_ns = time.time_ns()
         lights = self.lights
         if lights is None:
-            refused = self._refused.get("light calibration")
+            refused = self._refused.get(_LIGHTS)
             raise FingerpsReconError(
                 "no light calibration yet"
                 + (f" (the last one was refused: {refused})" if refused else "")

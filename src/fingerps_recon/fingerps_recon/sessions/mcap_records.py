@@ -480,7 +480,7 @@ def damage_error(scan: McapScan) -> McapDamageError:
         return McapDamageError(scan.path, scan.end_offset, orphaned[2:], scan.file_size)
     first = scan.damage[0]
     return McapDamageError(scan.path, first.start, first.reason + orphaned, scan.file_size,
-                           first.span_ns, tuple(scan.damage))
+                           damage=tuple(scan.damage))
 
 
 def summary_statistics(path: str | os.PathLike[str]) -> Statistics | None:
