@@ -8,6 +8,12 @@ from rclpy.parameter import Parameter
 
 from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
 from fingerps_recon.photometric.kernel_threads import set_thread_limit
+from fingerps_recon.photometric.option_rows import (
+    HK_ITERATIONS,
+    MASK_THRESHOLD,
+    RIDGE_GAIN,
+    RIDGE_PATCH,
+)
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.worker import ReconSettings
@@ -24,9 +30,7 @@ PARAMETERS = (
         "Camera model of the views, the integration and the points: perspective (from "
         "the burst's camera_info) or orthographic",
         check=one_of(*(p.value for p in Projection))),
-    ParameterRow(
-        "hk_iterations", 5, "Levenberg-Marquardt iterations of the HK solver",
-        min_value=1, max_value=100, integer=True),
+    HK_ITERATIONS,
     ParameterRow(
         "threads", 0,
         "Threads of the per-pixel solvers; 0 = every core. On a machine whose other cores "
@@ -36,10 +40,7 @@ PARAMETERS = (
         "queue_depth", 2,
         "Bursts waiting for reconstruction; the oldest is dropped beyond this",
         min_value=1, max_value=100, integer=True, read_only=True),
-    ParameterRow(
-        "mask_threshold", 0.15,
-        "Finger mask: fraction of the brightest level a pixel must exceed",
-        min_value=0.01, max_value=0.9),
+    MASK_THRESHOLD,
     ParameterRow(
         "fingerprint", False,
         "Also publish the rolled-equivalent 500 ppi print of every burst on 'fingerprint' "
@@ -49,10 +50,8 @@ PARAMETERS = (
         "enhance", True,
         "Publish the normal map after ridge enhancement (paper Eq. 12); the normals "
         "topic always carries the unenhanced normals"),
-    ParameterRow(
-        "w", 7, "Ridge enhancement patch size (odd), pixels", min_value=3, max_value=51,
-        integer=True, check=lambda v: None if v % 2 == 1 else "must be odd"),
-    ParameterRow("k", 2.5, "Ridge enhancement gain", min_value=0.0, max_value=20.0),
+    RIDGE_PATCH,
+    RIDGE_GAIN,
     ParameterRow(
         "working_distance", 0.09,
         "Camera-to-finger distance along the optical axis, metres (metric scale of "

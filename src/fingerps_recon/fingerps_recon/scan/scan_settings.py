@@ -18,6 +18,12 @@ from typing import Any
 
 from fingerps_recon.errors import ImpossibleGoalError
 from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
+from fingerps_recon.photometric.option_rows import (
+    HK_ITERATIONS,
+    MASK_THRESHOLD,
+    RIDGE_GAIN,
+    RIDGE_PATCH,
+)
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.scan.quality import QualityThresholds
 from fingerps_ros.parameter_table import ParameterRow, one_of
@@ -41,14 +47,11 @@ SCAN_PARAMETERS: tuple[ParameterRow, ...] = (
     ParameterRow("projection", Projection.PERSPECTIVE.value,
                  "Camera model: perspective (the burst's camera_info) or orthographic",
                  check=one_of(*(p.value for p in Projection))),
-    ParameterRow("hk_iterations", 5, "Levenberg-Marquardt iterations of the HK solver",
-                 1, 100, integer=True),
-    ParameterRow("mask_threshold", 0.15,
-                 "Finger mask: fraction of the brightest level a pixel must exceed", 0.01, 0.9),
+    HK_ITERATIONS,
+    MASK_THRESHOLD,
     ParameterRow("enhance", True, "Ridge enhancement (paper Eq. 12) of the normal map"),
-    ParameterRow("w", 7, "Ridge enhancement patch size (odd), pixels", 3, 51, integer=True,
-                 check=lambda v: None if v % 2 == 1 else "must be odd"),
-    ParameterRow("k", 2.5, "Ridge enhancement gain", 0.0, 20.0),
+    RIDGE_PATCH,
+    RIDGE_GAIN,
     ParameterRow("working_distance", 0.09,
                  "Camera-to-finger distance, metres (metric scale of depth)", 0.005, 2.0),
     MONO16_FULL_SCALE,
