@@ -9,6 +9,7 @@
 - ``ros_node``: an rclpy node of the test process (``/fingerps_test``) in a context of its own
   in that domain (initialised without signal handlers), destroyed at teardown.
 - ``installed(package, name)``: the path of an installed executable (``make build``).
+- ``restore_umask``: the process's umask put back after the test (which may change it).
 - ``rig``, ``finger_images``: the default simulated rig and its finger under each LED.
 - ``emulator``: a 7-LED board emulator on a pseudo-terminal; ``emulator_threads()`` its live
   threads, and ``no_emulator_threads_left`` (for ``pytest.mark.usefixtures``) fails a test
@@ -101,6 +102,15 @@ def installed() -> Callable[[str, str], Path]:
             pytest.fail(f"{exe} is not built: run 'make build' (then 'source tools/ros_env.sh')")
         return exe
     return path
+
+
+@pytest.fixture
+def restore_umask() -> Iterator[None]:
+    """The process's umask as before the test, whatever the test set."""
+    saved = os.umask(0o022)
+    os.umask(saved)
+    yield
+    os.umask(saved)
 
 
 @pytest.fixture(scope="module")

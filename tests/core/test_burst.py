@@ -5,7 +5,7 @@ import time
 
 import numpy as np
 import pytest
-from led_history import masks_lit_since
+from led_history import masks_lit_since, repeats_since
 
 from fingerps_driver.board.board_emulator import BoardEmulator, Fault
 from fingerps_driver.board.led_board import LedBoard
@@ -66,7 +66,7 @@ def test_simulated_camera_is_a_camera(rig):
 
 
 def test_burst_frames_are_tagged_with_the_led_actually_lit(rig):
-    start = time.monotonic()
+    start, resends = time.monotonic(), rig.board.resends
     result = _burst(rig, burst_id=7, with_dark=True)
     assert result.ok, result.reason
     assert result.reason == ""
@@ -83,13 +83,14 @@ def test_burst_frames_are_tagged_with_the_led_actually_lit(rig):
     assert np.all(result.dark.image == 0) and result.dark.level == 0.0
     # the emulator switched exactly one LED at a time, in order, then all off
     assert masks_lit_since(rig.emulator.history, start) == [1 << i for i in LEDS] + [0]
+    assert repeats_since(rig.emulator.history, start) <= rig.board.resends - resends
     assert rig.emulator.lit_mask == 0
     print(f"\nburst of 7 frames + dark over the pty: {result.duration_s * 1e3:.1f} ms")
     assert result.duration_s < 1.0  # ~5 ms when idle; the 0.2 s budget is not a CI bound
 
 
 def test_order_levels_and_exposures_are_applied_and_tagged(rig):
-    start = time.monotonic()
+    start, resends = time.monotonic(), rig.board.resends
     result = _burst(rig, led_order=(4, 0, 2), exposures_s=(0.01, 0.02, 0.03),
                     levels=(0.5, 1.0, 0.25))
     assert result.ok, result.reason
@@ -100,10 +101,11 @@ def test_order_levels_and_exposures_are_applied_and_tagged(rig):
     assert [f.level for f in result.frames] == [128 / 255, 1.0, 64 / 255]
     assert rig.emulator.levels == (255, 255, 64, 255, 128, 255, 255)
     assert masks_lit_since(rig.emulator.history, start) == [16, 1, 4, 0]
+    assert repeats_since(rig.emulator.history, start) <= rig.board.resends - resends
 
 
 def test_the_first_led_is_repeated_after_the_last_when_asked(rig):
-    start = time.monotonic()
+    start, resends = time.monotonic(), rig.board.resends
     result = _burst(rig, led_order=(4, 0, 2), exposures_s=(0.01, 0.02, 0.03),
                     repeat_first=True, with_dark=True)
     assert result.ok, result.reason
@@ -113,6 +115,7 @@ def test_the_first_led_is_repeated_after_the_last_when_asked(rig):
     assert np.all(repeat.image == 16)  # LED 4 was lit again when the camera grabbed
     assert result.frames[-1].stamp_ns <= repeat.stamp_ns <= result.dark.stamp_ns
     assert masks_lit_since(rig.emulator.history, start) == [16, 1, 4, 16, 0]
+    assert repeats_since(rig.emulator.history, start) <= rig.board.resends - resends
     assert _burst(rig).repeat is None
 
 
@@ -133,11 +136,12 @@ def test_fault_mid_burst_fails_it_and_the_next_burst_is_fine(rig):
     assert rig.emulator.lit_mask == 0  # switched off after the failure
 
     rig.grab_hook = None
-    start = time.monotonic()
+    start, resends = time.monotonic(), rig.board.resends
     result = _burst(rig, burst_id=2)
     assert result.ok, result.reason
     assert [int(f.image[0, 0]) for f in result.frames] == [1 << i for i in LEDS]
     assert masks_lit_since(rig.emulator.history, start) == [1 << i for i in LEDS] + [0]
+    assert repeats_since(rig.emulator.history, start) <= rig.board.resends - resends
 
 
 def test_disconnect_mid_burst_fails_it_and_a_reconnected_board_works(rig):

@@ -6,7 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from led_history import masks_lit_since
+from led_history import masks_lit_since, repeats_since
 
 from fingerps_driver.board.board_emulator import BoardEmulator
 from fingerps_driver.board.led_board import LedBoard
@@ -41,7 +41,7 @@ def test_each_led_sees_its_listed_image_through_the_serial_path(tmp_path):
         assert isinstance(camera, Camera)
         assert (camera.width, camera.height, camera.encoding) == (W, H, "mono8")
         assert camera.names[2] == "img/002.png"
-        start = time.monotonic()
+        start, resends = time.monotonic(), board.resends
         result = capture_burst(board, camera, burst_id=1, led_order=[6, 1, 3],
                                exposures_s=0.01, levels=1.0, with_dark=True)
         assert result.ok, result.reason
@@ -49,6 +49,7 @@ def test_each_led_sees_its_listed_image_through_the_serial_path(tmp_path):
             (6, 70), (1, 20), (3, 40)]
         assert not result.dark.image.any()  # nothing lit: black
         assert masks_lit_since(emulator.history, start) == [64, 2, 8, 0]
+        assert repeats_since(emulator.history, start) <= board.resends - resends
 
 
 def test_acknowledged_mask_of_a_real_board_drives_the_replay(tmp_path):

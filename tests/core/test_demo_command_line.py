@@ -12,7 +12,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
 
 import pytest
 
@@ -26,7 +25,7 @@ UMASK_ERROR = ("demo: error: FINGERPS_UMASK='bad' is not an octal umask: use e.g
 
 
 @pytest.fixture
-def as_demo(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[object]]:
+def as_demo(monkeypatch: pytest.MonkeyPatch, restore_umask: None) -> list[object]:
     """``demo.main`` as the installed ``demo`` executable, the user's umask restored after it
     and ``demo.run`` recording its arguments instead of starting the graph."""
     runs: list[object] = []
@@ -34,12 +33,7 @@ def as_demo(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[object]]:
     monkeypatch.delenv("FINGERPS_UMASK", raising=False)
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")  # restored after the test
     monkeypatch.setattr(demo, "run", lambda args: runs.append(args) or 0)
-    saved = os.umask(0o022)
-    os.umask(saved)
-    try:
-        yield runs
-    finally:
-        os.umask(saved)
+    return runs
 
 
 def _exit_code(argv: list[str]) -> int:

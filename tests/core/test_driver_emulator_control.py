@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from led_history import masks_lit_since
+from led_history import masks_lit_since, repeats_since
 from polling import poll_until
 
 from fingerps_driver.board.board_emulator import BoardEmulatorControl, EmulatorControlServer, Fault
@@ -86,7 +86,7 @@ def test_faults_injected_through_the_channel_are_recovered_by_the_client(control
 
 def test_deferred_power_cut_fails_the_burst_at_the_known_step(control, board, emulator):
     camera = _camera(control.lit_leds)
-    start = time.monotonic()
+    start, resends = time.monotonic(), board.resends
     assert _burst(board, camera).ok
     # a burst sends 7 LEVEL, then LEDS per LED, then OFF: the 10th reply is LED 2's switch
     control.inject(Fault.DISCONNECT, after=9)
@@ -100,17 +100,19 @@ def test_deferred_power_cut_fails_the_burst_at_the_known_step(control, board, em
     # the request was executed, then the board lost power
     masks = masks_lit_since(control.history(), start)
     assert masks == [1 << i for i in LEDS] + [0] + [1, 2, 4, 0]
+    assert repeats_since(control.history(), start) <= board.resends - resends
     with pytest.raises(BoardNotFoundError):
         board.open()
 
     control.reconnect()
     board.open()
-    start = time.monotonic()
+    start, resends = time.monotonic(), board.resends
     result = _burst(board, camera, burst_id=3)
     assert result.ok, result.reason
     assert [int(f.image[0, 0]) for f in result.frames] == [1 << f.led_index
                                                             for f in result.frames]
     assert masks_lit_since(control.history(), start) == [1 << i for i in LEDS] + [0]
+    assert repeats_since(control.history(), start) <= board.resends - resends
 
 
 def test_immediate_disconnect_and_errors_are_answered(control, board, tmp_path):

@@ -1,15 +1,16 @@
 """Tests of fingerps_recon.photometric.hk_solver on rendered HK and Lambertian scenes.
 
 The solver's tests run with both backends (``backend`` fixture): "numpy", the reference, and
-"numba", the compiled passes of fingerps_recon.photometric.hk_kernel (skipped where numba is not
-installed). The first numba test of a session compiles the kernels or loads them from
-numba's on-disk cache.
+"numba", the compiled passes of fingerps_recon.photometric.hk_kernel (numba is required: a
+test of that backend fails where the kernels cannot be imported). The first numba test of a
+session compiles the kernels or loads them from numba's on-disk cache.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from analytic_surfaces import sphere_normals
 from scipy.optimize import least_squares
 
 from fingerps_recon.errors import FingerpsReconError
@@ -30,31 +31,23 @@ SCALE = 45.0  # the rig's A: the single-scattering term is ~10 % of the signal
 BACKENDS = ("numpy", "numba")
 
 
-def _skip_without_numba() -> None:
-    if hk_solver._kernel_module("numba") is None:
-        pytest.skip(f"numba backend not available: {hk_solver._KERNEL_ERROR[0]}")
-
-
 @pytest.fixture(params=BACKENDS)
 def backend(request: pytest.FixtureRequest) -> str:
-    if request.param == "numba":
-        _skip_without_numba()
     return request.param
 
 
 def _surface(size: int = 61, *, ridges: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (H, W, 3) of a sphere cap (PS frame), optionally with ridges, and mask."""
-    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
-    half = (size - 1) / 2
-    x, y = (u - half) / (half - 0.5), -(v - half) / (half - 0.5)
-    mask = x**2 + y**2 < 0.9
-    z = np.sqrt(np.clip(1 - x**2 - y**2, 1e-6, None))
+    """Unit normals (H, W, 3) of a sphere cap out to 72 degrees (PS frame; tests/
+    analytic_surfaces.sphere_normals), optionally with ridges along x, and its mask."""
+    sphere, mask, _ = sphere_normals(size, size, radius_px=(size - 1) / 2 - 0.5, within=0.9)
+    x, y, z = sphere[mask].T
     gx, gy = -x / z, -y / z
     if ridges:
         gx = gx + 0.25 * np.cos(2 * np.pi * x / 0.25)
     n = np.stack([-gx, -gy, np.ones_like(x)], axis=-1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    return np.where(mask[..., None], n, 0.0), mask
+    normals = np.zeros_like(sphere)
+    normals[mask] = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    return normals, mask
 
 
 def _perspective_views(size: int, focal_px: float = 200.0) -> np.ndarray:
@@ -304,7 +297,6 @@ def test_blocks_and_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyP
 def test_numba_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
     # The numba passes add their global sums up per chunk of pixels in a fixed order: the
     # same answer, bit for bit, with 1 or 2 threads (here with many chunks).
-    _skip_without_numba()
     normals, mask = _surface()
     rng = np.random.default_rng(6)
     images = _render(normals, mask, rng.uniform(0.4, 0.6, mask.shape))
@@ -375,7 +367,6 @@ def _agree(inputs: dict[str, object]) -> None:
 
 def test_numba_agrees_with_numpy_on_the_rig_finger(rig_finger: dict[str, object]) -> None:
     # ~170 000 finger pixels (hundreds of chunks, both threads), distant lights.
-    _skip_without_numba()
     _agree(rig_finger)
 
 
@@ -383,7 +374,6 @@ def test_numba_agrees_with_numpy_on_the_rig_finger_near_lights(
     rig_finger: dict[str, object],
 ) -> None:
     # The node's inputs: per-pixel lights, views and intensities (float32).
-    _skip_without_numba()
     size = rig_finger["mask"].shape
     v, u = np.mgrid[0:size[0], 0:size[1]].astype(np.float64)
     views = np.stack([-(u - size[1] / 2) / 3000.0, (v - size[0] / 2) / 3000.0,

@@ -40,23 +40,34 @@ def test_the_kernels_recompile_after_an_edit_of_symmetric_solve(tmp_path):
     """Real numba: kernels cached under NUMBA_CACHE_DIR, then symmetric_solve made newer
     (as an edit would): the next process drops those caches and compiles again."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
-    run = ("import numpy as np\n"
+    # Prints what the import dropped, whether an index in argv survived it, then calls the
+    # jitted adjugate: its determinant and the dispatcher's cache hits and misses.
+    run = ("import os, sys\n"
+           "import numpy as np\n"
            "from fingerps_recon.photometric import lambertian_kernel as k, symmetric_solve\n"
            "print(k.drop_stale_caches(vars(k), inlined=(symmetric_solve,)))\n"
+           "print(any(os.path.exists(index) for index in sys.argv[1:]))\n"
            "m = np.float32\n"
-           "print(k._adjugate.py_func(m(2), m(0), m(0), m(2), m(0), m(2))[6])\n")
+           "print(k._adjugate(m(2), m(0), m(0), m(2), m(0), m(2))[6])\n"
+           "stats = k._adjugate.stats\n"
+           "print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))\n")
     # Compile the jitted adjugate into the cache, then age the cache below the source.
-    warm = run + "k._adjugate(m(2), m(0), m(0), m(2), m(0), m(2))\n"
-    subprocess.run([sys.executable, "-c", warm], env=env, check=True, capture_output=True)
+    warm = subprocess.run([sys.executable, "-c", run], env=env, check=True,
+                          capture_output=True, text=True).stdout.split()
+    assert warm == ["0", "False", "8.0", "0", "1"]  # compiled: a cache miss
     indexes = list((tmp_path / "cache").rglob("*.nbi"))
     assert indexes, "numba wrote no cache"
     for index in indexes:
         os.utime(index, (1000, 1000))
-    out = subprocess.run([sys.executable, "-c", run], env=env, check=True,
-                         capture_output=True, text=True).stdout.split()
-    # The module's import already dropped them (its own call then finds none left).
+    out = subprocess.run([sys.executable, "-c", run, *map(str, indexes)], env=env,
+                         check=True, capture_output=True, text=True).stdout.split()
+    # The module's import already dropped them (its own call then finds none left) ...
     assert out[0] == "0"
-    assert not any(index.exists() for index in indexes)
+    assert out[1] == "False"
+    # ... so the adjugate compiled again (a miss, not a hit of the stale code) and was
+    # cached anew.
+    assert out[2:] == ["8.0", "0", "1"]
+    assert all(index.stat().st_mtime > 1000 for index in indexes)
 
 
 def test_the_modules_a_kernel_module_inlines_are_found_from_its_kernels():

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from analytic_surfaces import sphere_normals
 
-from fingerps_recon.photometric import hk_solver
 from fingerps_recon.photometric.angular_error import angular_error_deg
 from fingerps_recon.photometric.hk_model import hk_reflectance
 from fingerps_recon.photometric.hk_solver import solve_hk
@@ -61,8 +60,6 @@ def test_lambertian_with_96_lights_distant_and_per_pixel() -> None:
 
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
 def test_hk_with_96_lights(backend: str) -> None:
-    if backend == "numba" and hk_solver._kernel_module("numba") is None:
-        pytest.skip(f"numba backend not available: {hk_solver._KERNEL_ERROR[0]}")
     lights = _lights()
     normals, mask = _cap()
     rho = np.random.default_rng(2).uniform(0.4, 0.6, mask.shape)

@@ -3,21 +3,12 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from fingerps_ros.errors import PrivacySettingError
 from fingerps_ros.privacy import apply_private_umask, start_private_tool, use_localhost_discovery
-
-
-@pytest.fixture
-def restore_umask() -> Iterator[None]:
-    saved = os.umask(0o022)
-    os.umask(saved)
-    yield
-    os.umask(saved)
 
 
 @pytest.mark.parametrize(("value", "expected"), [("", 0o077), ("027", 0o027), ("0", 0)])

@@ -17,13 +17,11 @@ import time
 
 import numpy as np
 import pytest
-import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Point, Vector3
 from polling import poll_until
-from rclpy.context import Context
-from rclpy.signals import SignalHandlerOptions
+from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
@@ -353,7 +351,7 @@ def test_the_log_gate_lets_each_problem_through_once_per_period() -> None:
 
 # ------------------------------------------------------------------ the node's worker
 def test_the_worker_survives_an_unexpected_error(
-        rig: SimulatedRig, finger_images: np.ndarray, ros_domain: int,
+        rig: SimulatedRig, finger_images: np.ndarray, ros_node: Node,
         monkeypatch: pytest.MonkeyPatch) -> None:
     real = worker.reconstruct_burst
 
@@ -363,18 +361,15 @@ def test_the_worker_survives_an_unexpected_error(
         return real(burst, *args, **kwargs)
 
     monkeypatch.setattr(worker, "reconstruct_burst", flaky)  # as the worker calls it
-    context = Context()
-    rclpy.init(context=context, domain_id=ros_domain,
-               signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
-        node = recon_node.ReconNode(context=context)
+        node = recon_node.ReconNode(context=ros_node.context)
         node._recon.on_lights(calibration(rig))
         for burst_id in (1, 2):
             good = burst(rig, finger_images)
             good.burst_id = burst_id
             node._recon.on_burst(good)
-        poll_until(lambda: node._recon.done + node._recon.failed >= 2, 60.0, interval_s=0.05)
+        poll_until(lambda: node._recon.done + node._recon.failed >= 2, 60.0)
         assert (node._recon.failed, node._recon.unexpected, node._recon.done) == (1, 1, 1)
         assert node._worker.is_alive()
         level, message = node._recon.health()
@@ -384,5 +379,4 @@ def test_the_worker_survives_an_unexpected_error(
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown(context=context)
 

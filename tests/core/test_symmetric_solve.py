@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numba
 import numpy as np
 import pytest
 
@@ -82,7 +83,6 @@ def _compiled_solver(parallel: bool) -> Callable[..., None]:
     functions inlined with its ``inline_kernel``): per column, the adjugate solve of the
     float32 upper triangle ``h`` (6, N) and right-hand side ``r`` (3, N), or x = 0 where
     det <= ``singular`` m11 m22 m33 (the HK step's guard)."""
-    numba = pytest.importorskip("numba")
     from fingerps_recon.photometric.kernel_compile import inline_kernel
 
     adjugate = inline_kernel(symmetric_adjugate)

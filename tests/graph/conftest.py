@@ -59,10 +59,9 @@ NS = "/" + topics.NAMESPACE
 FRAME_ID = "fingerps_camera_optical_frame"
 
 
-def wait_until(condition: Callable[[], object], what: str, *, timeout: float = 20.0,
-               period: float = 0.05) -> None:
+def wait_until(condition: Callable[[], object], what: str, *, timeout: float = 20.0) -> None:
     """Poll ``condition`` until it returns something truthy; fail the test after ``timeout``."""
-    if not poll_until(condition, timeout, interval_s=period):
+    if not poll_until(condition, timeout):
         pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
 
 

@@ -13,19 +13,19 @@ companion is encoded only while subscribed, and a failure is counted, never rais
 
 from __future__ import annotations
 
-import functools
 import struct
-import time
 from collections import defaultdict
 
 import cv2
 import numpy as np
 import pytest
 import rclpy
+from polling import poll_until
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, Image
+from stamps import stamp_key
 from std_msgs.msg import Header
 
 from fingerps_driver.demo import SPHERE_PLACEMENTS
@@ -40,32 +40,17 @@ NS = "/" + topics.NAMESPACE
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-def _key(header: Header) -> tuple[int, int]:
-    return header.stamp.sec, header.stamp.nanosec
-
-
-class _Calls:
-    """Service calls and parameter changes of the test node, spun until answered."""
-
-    def __init__(self, node: Node, call_service, set_parameters) -> None:
-        self.node = node
-        self.call = functools.partial(call_service, timeout=60.0)  # (client, request, what)
-        self.set_parameters = set_parameters
-
-    def set_params(self, node_name: str, values: dict[str, object]) -> None:
-        for result in self.set_parameters(node_name, values, timeout=60.0):
-            assert result.successful, result.reason
-
-    def capture(self) -> None:
-        client = self.node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
-        response = self.call(client, CaptureBurst.Request(), "a burst")
-        assert response.success, response.message
-        self.node.destroy_client(client)
+def _capture(node: Node, call_service) -> None:
+    """One capture_burst call of the test node, spun until answered; asserts success."""
+    client = node.create_client(CaptureBurst, f"{NS}/{topics.CAPTURE_BURST}")
+    response = call_service(client, CaptureBurst.Request(), "a burst", timeout=60.0)
+    assert response.success, response.message
+    node.destroy_client(client)
 
 
 def _store(node: Node, msg_type, topic: str, profile, into: dict) -> object:
     return node.create_subscription(
-        msg_type, topic, lambda m: into.__setitem__(_key(m.header), m), profile)
+        msg_type, topic, lambda m: into.__setitem__(stamp_key(m.header), m), profile)
 
 
 def _png(message: CompressedImage) -> np.ndarray:
@@ -111,18 +96,21 @@ def test_recon_companions_equal_the_raw_outputs(ros_node: Node, start_node, spin
     spin_until(lambda: all(s.get_publisher_count() >= 1 for s in subscriptions),
                "recon's compressed publishers")
 
-    calls = _Calls(ros_node, call_service, set_parameters)
+    def set_params(node_name: str, values: dict[str, object]) -> None:
+        for result in set_parameters(node_name, values, timeout=60.0):
+            assert result.successful, result.reason
+
     lights = ros_node.create_client(CalibrateLights, f"{NS}/calibrate_lights")
     for i, center in enumerate(SPHERE_PLACEMENTS):
-        calls.set_params("driver", {"sim.sphere_center": center})
-        response = calls.call(lights, CalibrateLights.Request(
-            sphere_radius=0.004, add_placement=i > 0), f"light placement {i}")
+        set_params("driver", {"sim.sphere_center": center})
+        response = call_service(lights, CalibrateLights.Request(
+            sphere_radius=0.004, add_placement=i > 0), f"light placement {i}", timeout=60.0)
         assert response.success, response.message
-    calls.set_params("driver", {"sim.scene": "finger"})
+    set_params("driver", {"sim.scene": "finger"})
 
     def burst_out(keys_before: set) -> tuple[int, int]:
         """Capture until a burst's raw and compressed outputs have all arrived."""
-        calls.capture()
+        _capture(ros_node, call_service)
 
         def complete() -> tuple[int, int] | None:
             for key in set(packed[topics.NORMAL_MAP]) - keys_before:
@@ -162,7 +150,7 @@ def test_recon_companions_equal_the_raw_outputs(ros_node: Node, start_node, spin
                                   decoded[finite])
 
     # the format is read at every publish: jpeg from the next burst on
-    calls.set_params("recon", {"normal_map.compressed.format": "jpeg"})
+    set_params("recon", {"normal_map.compressed.format": "jpeg"})
     key = burst_out(set(packed[topics.NORMAL_MAP]))
     message = packed[topics.NORMAL_MAP][key]
     assert message.format == "rgb8; jpeg compressed bgr8"
@@ -223,14 +211,12 @@ def test_a_companion_is_encoded_only_while_subscribed_and_never_raises(
         received: list[CompressedImage] = []
         ros_node.create_subscription(CompressedImage, f"{NS}/picture/compressed",
                                      received.append, qos.OUTPUT_QOS)
-        deadline = time.monotonic() + 20.0
-        while node.count_subscribers(f"{NS}/picture/compressed") < 1:
-            assert time.monotonic() < deadline, "the subscription never matched"
-            executor.spin_once(timeout_sec=0.05)
+        assert poll_until(lambda: executor.spin_once(timeout_sec=0.05)
+                          or node.count_subscribers(f"{NS}/picture/compressed") >= 1, 20.0), \
+            "the subscription never matched"
         companion.publish(image, "mono8", header)
-        while not received:
-            assert time.monotonic() < deadline, "the compressed image never arrived"
-            executor.spin_once(timeout_sec=0.05)
+        assert poll_until(lambda: executor.spin_once(timeout_sec=0.05) or received, 20.0), \
+            "the compressed image never arrived"
         assert encoded == [1] and companion.published == 1
         back, encoding = decode_compressed(received[0].format, received[0].data)
         assert encoding == "mono8" and received[0].header.stamp.sec == 7
@@ -255,9 +241,9 @@ IMAGE_RAW_ON = ("image_raw.enable_pub_plugins:="
 
 @pytest.mark.parametrize(("bit_depth", "encoding"), [(8, "mono8"), (12, "mono16")])
 def test_driver_image_raw_companion_is_exact(ros_node: Node, start_node, spin_until,
-                                             call_service, set_parameters, bit_depth: int,
+                                             call_service, bit_depth: int,
                                              encoding: str) -> None:
-    """Needs driver_node wired with CompressedTopics for image_raw (skipped until it is)."""
+    """Needs driver_node wired with CompressedTopics for image_raw."""
     raw: dict[tuple[int, int], Image] = {}
     packed: dict[tuple[int, int], CompressedImage] = {}
     # best effort as the publishers (sensor data), deep enough to hold a burst's 7 frames
@@ -270,14 +256,12 @@ def test_driver_image_raw_companion_is_exact(ros_node: Node, start_node, spin_un
     driver.wait_in_graph(ros_node, "driver", NS)
     spin_until(lambda: compressed_sub.get_publisher_count() >= 1,
                "the driver's image_raw/compressed publisher")
-    _Calls(ros_node, call_service, set_parameters).capture()
-    deadline = time.monotonic() + 10.0
+    _capture(ros_node, call_service)
 
     def matched() -> list[tuple[int, int]]:
         return sorted(set(raw) & set(packed))
-    # best effort: wait for the burst's 7 frames, accept what arrived by the deadline
-    while len(matched()) < 7 and time.monotonic() < deadline:
-        spin_until(lambda: True, "a spin")
+    # best effort: wait up to 10 s for the burst's 7 frames, accept what arrived by then
+    poll_until(lambda: spin_until(lambda: True, "a spin") or len(matched()) >= 7, 10.0)
     assert matched(), f"no image_raw/compressed with a raw image of its stamp: {driver.output}"
     for key in matched():
         message = packed[key]

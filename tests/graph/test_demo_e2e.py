@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import json
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import yaml
-from ament_index_python.packages import get_package_prefix
 from mcap.reader import make_reader
 
 from fingerps_recon.surface.ply import read_ply
@@ -19,10 +19,11 @@ from fingerps_recon.surface.ply import read_ply
 MAE_LIMIT_DEG = 1.3
 
 
-def test_demo_reconstructs_the_simulated_finger(ros_domain: int, tmp_path: Path) -> None:
+def test_demo_reconstructs_the_simulated_finger(
+        ros_domain: int, tmp_path: Path, installed: Callable[[str, str], Path]) -> None:
     figures_path = tmp_path / "figures.json"
     out, bags = tmp_path / "out", tmp_path / "bags"
-    demo = Path(get_package_prefix("fingerps_driver")) / "lib/fingerps_driver/demo"
+    demo = installed("fingerps_driver", "demo")
     run = subprocess.run(
         [str(demo), "--out", str(out), "--bags", str(bags), "--bursts", "3",
          "--figures", str(figures_path)],

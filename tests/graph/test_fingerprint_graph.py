@@ -16,7 +16,8 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
-from test_recon_graph import NS, _diagnostic_values, _key
+from stamps import stamp_key
+from test_recon_graph import NS, _diagnostic_values
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, LightCalibration
@@ -62,10 +63,10 @@ def test_a_burst_in_gives_a_500ppi_fingerprint_out(
     prints: dict[tuple[int, int], Image] = {}
     clouds: dict[tuple[int, int], PointCloud2] = {}
     ros_node.create_subscription(Image, f"{NS}/{topics.FINGERPRINT}",
-                                 lambda m: prints.__setitem__(_key(m.header), m),
+                                 lambda m: prints.__setitem__(stamp_key(m.header), m),
                                  qos.OUTPUT_QOS)
     ros_node.create_subscription(PointCloud2, f"{NS}/{topics.POINTS}",
-                                 lambda m: clouds.__setitem__(_key(m.header), m),
+                                 lambda m: clouds.__setitem__(stamp_key(m.header), m),
                                  qos.OUTPUT_QOS)
     diagnostics: list[DiagnosticArray] = []
     ros_node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diagnostics.append, 10)
@@ -80,8 +81,8 @@ def test_a_burst_in_gives_a_500ppi_fingerprint_out(
 
     good = rig_messages.burst(_images(rig, 100), 1)
     burst_pub.publish(good)
-    spin_until(lambda: _key(good.header) in prints, "the fingerprint of the burst", timeout=60)
-    message = prints[_key(good.header)]
+    spin_until(lambda: stamp_key(good.header) in prints, "the fingerprint of the burst", timeout=60)
+    message = prints[stamp_key(good.header)]
     assert message.encoding == "mono8"
     assert message.header.frame_id == topics.FINGERPRINT_FRAME == "fingerps_rolled_print_500ppi"
     image = image_to_array(message)
@@ -100,7 +101,7 @@ def test_a_burst_in_gives_a_500ppi_fingerprint_out(
     small[cy - 60:cy + 60, cx - 60:cx + 60] = True
     patch = rig_messages.burst(_images(rig, 200, mask=small), 2)
     burst_pub.publish(patch)
-    spin_until(lambda: _key(patch.header) in clouds, "the small patch's cloud", timeout=60)
+    spin_until(lambda: stamp_key(patch.header) in clouds, "the small patch's cloud", timeout=60)
     spin_until(lambda: any(int(v.get("fingerprints_rejected", 0)) >= 1
                            for v in _diagnostic_values(diagnostics)),
                "the rejected print counted")
@@ -108,6 +109,6 @@ def test_a_burst_in_gives_a_500ppi_fingerprint_out(
               if int(v.get("fingerprints_rejected", 0)) >= 1][-1]
     assert "no fingerprint" in values["last_fingerprint_problem"]
     assert "mm" in values["last_fingerprint_problem"]  # it says how much finger there was
-    assert _key(patch.header) not in prints
+    assert stamp_key(patch.header) not in prints
     assert int(values["fingerprints_made"]) >= 1
     assert "Traceback" not in recon.output

@@ -31,6 +31,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, Vector3
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
+from stamps import stamp_key
 from std_msgs.msg import Header
 
 from fingerps_driver.simulation import FingerTruth, Scene, SimulatedRig
@@ -59,10 +60,6 @@ def empty_images(rig: SimulatedRig) -> np.ndarray:
                      for k in range(rig.led_count)])
 
 
-def _key(header: Header) -> tuple[int, int]:
-    return header.stamp.sec, header.stamp.nanosec
-
-
 def _diagnostic_values(arrays: list[DiagnosticArray]) -> list[dict[str, str]]:
     return [{kv.key: kv.value for kv in status.values}
             for array in arrays for status in array.status
@@ -81,7 +78,7 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     subscriptions = []
     for name, msg_type in OUTPUTS.items():
         def store(msg, name=name) -> None:
-            received[name][_key(msg.header)] = msg
+            received[name][stamp_key(msg.header)] = msg
         subscriptions.append(ros_node.create_subscription(
             msg_type, f"{NS}/{name}", store, qos.OUTPUT_QOS))
     diagnostics: list[DiagnosticArray] = []
@@ -106,14 +103,14 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     for burst in (incomplete, nothing_in_view, colour, good):  # queue_depth 4: none dropped
         burst_pub.publish(burst)
     # One worker, in order: once the good burst's outputs are out, the others are done.
-    spin_until(lambda: all(_key(good.header) in received[name] for name in OUTPUTS),
+    spin_until(lambda: all(stamp_key(good.header) in received[name] for name in OUTPUTS),
                "the outputs of the complete burst", timeout=20.0)
-    assert all(set(received[name]) == {_key(good.header)} for name in OUTPUTS), \
+    assert all(set(received[name]) == {stamp_key(good.header)} for name in OUTPUTS), \
         {name: set(r) for name, r in received.items()}
     assert recon.running()
 
     height, width = rig.config.height, rig.config.width
-    normals_msg = received[topics.NORMALS][_key(good.header)]
+    normals_msg = received[topics.NORMALS][stamp_key(good.header)]
     assert normals_msg.encoding == "32FC3" and normals_msg.header.frame_id == FRAME_ID
     normals_optical = image_to_array(normals_msg)
     assert normals_optical.shape == (height, width, 3)
@@ -128,23 +125,23 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     print(f"\nnormals' mean angular error through recon_node {mean_error:.3f} deg")
     assert mean_error < MAX_MEAN_ERROR_DEG
 
-    normal_map = received[topics.NORMAL_MAP][_key(good.header)]
+    normal_map = received[topics.NORMAL_MAP][stamp_key(good.header)]
     assert normal_map.encoding == "rgb8"
     rgb = image_to_array(normal_map)
     assert rgb.shape == (height, width, 3) and np.all(rgb[~mask] == 0) and rgb[mask].any()
 
-    depth_msg = received[topics.DEPTH][_key(good.header)]
+    depth_msg = received[topics.DEPTH][stamp_key(good.header)]
     assert depth_msg.encoding == "32FC1" and depth_msg.header.frame_id == FRAME_ID
     depth = image_to_array(depth_msg)
     np.testing.assert_array_equal(np.isfinite(depth), mask)
     assert np.all((depth[mask] > 0.085) & (depth[mask] < 0.100))
 
-    albedo_msg = received[topics.ALBEDO][_key(good.header)]
+    albedo_msg = received[topics.ALBEDO][stamp_key(good.header)]
     assert albedo_msg.encoding == "32FC1"
     albedo = image_to_array(albedo_msg)
     assert np.all(albedo[mask] > 0) and np.all(albedo[~mask] == 0)
 
-    cloud = received[topics.POINTS][_key(good.header)]
+    cloud = received[topics.POINTS][stamp_key(good.header)]
     assert cloud.header.frame_id == FRAME_ID
     points, intensity = cloud_to_points(cloud)
     assert points.shape == (int(mask.sum()), 3) and intensity.shape == (points.shape[0],)
@@ -163,7 +160,7 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     # A second burst of the same camera with the same calibration: nothing is prepared again.
     again = rig_messages.burst(finger_images, 4)
     burst_pub.publish(again)
-    spin_until(lambda: all(_key(again.header) in received[name] for name in OUTPUTS),
+    spin_until(lambda: all(stamp_key(again.header) in received[name] for name in OUTPUTS),
                "the outputs of the second complete burst", timeout=20.0)
     spin_until(lambda: any(int(v.get("bursts_done", 0)) >= 2 for v in
                            _diagnostic_values(diagnostics)),
@@ -256,7 +253,7 @@ def test_recon_node_survives_every_malformed_input(
     subscriptions = []
     for name, msg_type in OUTPUTS.items():
         def store(msg, name=name) -> None:
-            received[_key(msg.header)] += 1
+            received[stamp_key(msg.header)] += 1
         subscriptions.append(ros_node.create_subscription(
             msg_type, f"{NS}/{name}", store, qos.OUTPUT_QOS))
     diagnostics: list[DiagnosticArray] = []
@@ -330,7 +327,7 @@ def test_recon_node_survives_every_malformed_input(
     # 3. A good burst: reconstructed without the flat field (counted); WARN, not ERROR.
     good = rig_messages.burst(finger_images, 200)
     burst_pub.publish(good)
-    spin_until(lambda: received[_key(good.header)] == len(OUTPUTS),
+    spin_until(lambda: received[stamp_key(good.header)] == len(OUTPUTS),
                "the outputs of the good burst after the malformed inputs", timeout=30.0)
     until_status(lambda level, v: level == 1 and v["bursts_done"] == "1"
                  and v["bursts_without_flat_field"] == "1",
@@ -347,14 +344,14 @@ def test_recon_node_survives_every_malformed_input(
     more = [rig_messages.burst(finger_images, 201 + i) for i in range(3)]
     for burst in more:
         burst_pub.publish(burst)
-    spin_until(lambda: all(received[_key(b.header)] == len(OUTPUTS) for b in more),
+    spin_until(lambda: all(received[stamp_key(b.header)] == len(OUTPUTS) for b in more),
                "the outputs of the good bursts", timeout=30.0)
     until_status(lambda level, v: level == 0 and v["bursts_done"] == "4",
                  "diagnostics back to OK once good bursts flow", timeout=5.0)
     _, values = _status(diagnostics)
     assert values["bursts_without_flat_field"] == "1", values
     assert values["unexpected_errors"] == "0", values
-    assert set(received) == {_key(b.header) for b in [good, *more]}, set(received)
+    assert set(received) == {stamp_key(b.header) for b in [good, *more]}, set(received)
 
     assert recon.running(), recon.output
     recon.send_signal(signal.SIGINT)
