@@ -12,7 +12,6 @@ Target: publishing adds <= 20 ms per burst.
 
 from __future__ import annotations
 
-import os
 import statistics
 import subprocess
 import sys
@@ -31,7 +30,7 @@ from fingerps_ros import qos, topics
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from graph_harness import bench_node
-from ros_domain import own_ros_domain
+from ros_domain import domain_env, own_ros_domain
 
 BURSTS = 30
 WARM_UP = 2
@@ -44,8 +43,7 @@ def run() -> dict[str, float]:
 
 
 def _run_in(domain: int) -> dict[str, float]:
-    env = {**os.environ, "ROS_DOMAIN_ID": str(domain),
-           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    env = domain_env(domain)
     exe = executable("fingerps_driver", "driver_node")
     with tempfile.TemporaryFile() as log:
         driver = subprocess.Popen([exe], env=env, stdout=log, stderr=subprocess.STDOUT,

@@ -74,13 +74,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fingerps_driver.demo import call_service, executable
+from fingerps_driver.demo import SPHERE_PLACEMENTS, call_service, executable
 from fingerps_driver.errors import DemoError
 from fingerps_ros.time_conversion import time_nanoseconds
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from figures_report import exit_codes, print_figures
-from ros_domain import own_ros_domain
+from ros_domain import domain_env, own_ros_domain
 
 DEMO_RUNS = 3
 DEMO_NAMES = ("e2e.bursts_per_s", "e2e.latency_ms_median", "e2e.mae_deg")
@@ -97,22 +97,15 @@ FIRST_CLOUD_STARTS = 3
 GRACE_MAX_S = 20.0             # longest wait for a window's last clouds
 STOP_TIMEOUT_S = 20.0
 
-# Sphere placements of the light calibration (as the demo's), optical frame, metres.
-SPHERE_PLACEMENTS = ((2.0e-3, -1.5e-3, 0.094), (-4.0e-3, 2.0e-3, 0.092),
-                     (4.5e-3, 2.5e-3, 0.097))
-
 
 class BenchError(Exception):
     """The benchmark could not complete; the message says which step and where the logs are."""
 
 
 def graph_env(domain_id: int, home: Path) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY")}
-    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               ROS_HOME=str(home), ROS_LOG_DIR=str(home / "log"), PYTHONUNBUFFERED="1",
-               RCUTILS_COLORIZED_OUTPUT="0")
-    return env
+    """The node processes' environment: ``domain_env``, ROS_HOME and ROS_LOG_DIR in ``home``."""
+    return domain_env(domain_id, ROS_HOME=str(home), ROS_LOG_DIR=str(home / "log"),
+                      PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0")
 
 
 def load_line() -> str:
@@ -288,16 +281,12 @@ class Observer:
         return call_service(client, request, timeout=timeout, what=what)
 
     def set_driver(self, name: str, value: object) -> None:
-        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
         from rcl_interfaces.srv import SetParameters
-        if isinstance(value, str):
-            pv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
-        elif isinstance(value, float):
-            pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
-        else:
-            pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY,
-                                double_array_value=[float(v) for v in value])
-        request = SetParameters.Request(parameters=[Parameter(name=name, value=pv)])
+        from rclpy.parameter import Parameter
+
+        # typed from the value: a str, a float, a tuple of floats (a double array)
+        request = SetParameters.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg()])
         response = self.call(self.driver_params, request, timeout=20.0,
                              what=f"setting the driver's {name}")
         if not response.results[0].successful:

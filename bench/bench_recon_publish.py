@@ -19,7 +19,7 @@ subscribed to the five topics (raw, so it takes the serialised bytes without dec
 in Python). After each round the benchmark waits until that subscriber has taken the
 round's five messages, so a round's publishing never competes with the previous round's
 delivery; ``total.delivered`` is the time from the round's first conversion to that
-acknowledgement. The run has a ROS domain of its own (locked as tests/graph/conftest.py
+acknowledgement. The run has a ROS domain of its own (locked as tests/conftest.py
 does) and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``.
 
 ``run()`` returns medians (ms) over the rounds: ``recon.publish_ms.<output>.convert`` and
@@ -67,7 +67,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from figures_report import parse_repeats
 from graph_harness import bench_node
-from ros_domain import own_ros_domain
+from ros_domain import domain_env, own_ros_domain
 
 RUNS = 21
 MIN_RUNS = 15
@@ -194,10 +194,7 @@ def measure(repeats: int = RUNS) -> dict[str, list[float]]:
     result = _result()
     times = {"intake": _intake(result, repeats)}
     with own_ros_domain() as domain, tempfile.TemporaryFile("w+") as log:
-        env = {**os.environ, "ROS_DOMAIN_ID": str(domain),
-               "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PYTHONUNBUFFERED": "1"}
-        env.pop("ROS_STATIC_PEERS", None)
-        env.pop("ROS_LOCALHOST_ONLY", None)
+        env = domain_env(domain, PYTHONUNBUFFERED="1")
         saved = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # read by rclpy.init
         sink = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--subscribe"],

@@ -1,16 +1,18 @@
 """A ROS domain of a benchmark's own: an id that no concurrent graph test or benchmark on
-this machine holds (the lock files tests/graph/conftest.py takes too)."""
+this machine holds (the lock files the ``ros_domain`` fixture of tests/conftest.py takes
+too), and the environment of a process in it (``domain_env``)."""
 
 from __future__ import annotations
 
 import fcntl
+import os
 import random
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-DOMAIN_RANGE = range(40, 102)  # as tests/graph: Fast DDS ports of ids above 101 can collide
+DOMAIN_RANGE = range(40, 102)  # as tests/conftest.py: Fast DDS ports of ids above 101 collide
 
 
 @contextmanager
@@ -34,3 +36,14 @@ def own_ros_domain() -> Iterator[int]:
             handle.close()
         return
     raise RuntimeError(f"every ROS domain id in {DOMAIN_RANGE} is held by another run")
+
+
+def domain_env(domain_id: int, **extra: str) -> dict[str, str]:
+    """``os.environ`` for a process in the ROS domain ``domain_id`` on this host only:
+    ``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, without
+    ``ROS_STATIC_PEERS`` and ``ROS_LOCALHOST_ONLY`` (as the tests' ``ros_domain``), then
+    ``extra``."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY")}
+    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", **extra)
+    return env
