@@ -92,10 +92,6 @@ class Received:
             return whole, sum(self.recon_counts.values())
 
 
-def _stamp_ns(msg: Image | PointCloud2) -> int:
-    return time_nanoseconds(msg.header.stamp)
-
-
 def call_service(client, request, *, timeout: float, what: str):
     """Call a service whose node another thread spins; return the response, or raise
     DemoError naming ``what``."""
@@ -142,10 +138,10 @@ class DemoClient(Node):
 
     def _keep(self, store: dict[int, np.ndarray], msg: Image) -> None:
         with self.received.lock:
-            store[_stamp_ns(msg)] = image_to_array(msg)
+            store[time_nanoseconds(msg.header.stamp)] = image_to_array(msg)
 
     def _on_cloud(self, msg: PointCloud2) -> None:
-        stamp = _stamp_ns(msg)
+        stamp = time_nanoseconds(msg.header.stamp)
         with self.received.lock:
             self.received.latency_ms[stamp] = (time.time_ns() - stamp) / 1e6
             self.received.arrival[stamp] = time.monotonic()

@@ -33,7 +33,12 @@ from fingerps_driver.cameras.camera_setup import (
 from fingerps_driver.capture.burst import BurstResult, capture_burst
 from fingerps_driver.capture.burst_plan import BurstPlan
 from fingerps_driver.capture.capture_rate import CaptureRate
-from fingerps_driver.errors import BoardRejectedError, CameraError, FingerpsDriverError
+from fingerps_driver.errors import (
+    BoardDisconnectedError,
+    BoardRejectedError,
+    CameraError,
+    FingerpsDriverError,
+)
 from fingerps_driver.simulation import Scene
 from fingerps_ros.log import Log
 
@@ -57,7 +62,7 @@ class BurstCounters:
 def refused(reason: str) -> BurstResult:
     """The result of a burst refused because the board is away."""
     return BurstResult(0, (), None, False, reason, 0.0, failed_step="board",
-                       error_type="BoardDisconnectedError")
+                       error_type=BoardDisconnectedError.__name__)
 
 
 class DriverCore:

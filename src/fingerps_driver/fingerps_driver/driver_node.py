@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable
 from functools import partial
 
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from sensor_msgs.srv import SetCameraInfo
@@ -72,8 +73,7 @@ class DriverNode(Node):
             self, topics.IMAGE_RAW, qos.SENSOR_QOS, self._checks, enabled_by_default=False)
         self._checks.refuse_unknown_overrides(self)
 
-        self._diagnostics = DiagnosticsPublisher(self, lambda: driver_statuses(
-            self.get_name(), self._core, self._image_compressed.failures))
+        self._diagnostics = DiagnosticsPublisher(self, self._statuses)
         self._core = DriverCore(board_settings(self._param), camera_settings(self._param),
                                 log=self.get_logger(), start_timer=self._one_shot,
                                 on_board_change=self._diagnostics.publish)
@@ -229,6 +229,9 @@ class DriverNode(Node):
     def _on_diagnostics_timer(self) -> None:
         if not self._core.board.lose_if_port_vanished():  # a loss publishes them itself
             self._diagnostics.publish()
+
+    def _statuses(self) -> list[DiagnosticStatus]:
+        return driver_statuses(self.get_name(), self._core, self._image_compressed.failures)
 
     def destroy_node(self) -> None:
         """Switch the LEDs off and close the board and camera (idempotent)."""

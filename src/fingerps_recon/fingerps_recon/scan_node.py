@@ -149,7 +149,7 @@ class ScanNode(Node):
 
     def _on_flat(self, msg: FlatField) -> None:
         try:
-            self._flat_maps = images_to_array(list(msg.maps)).astype(np.float32, copy=False)
+            self._flat_maps = images_to_array(msg.maps).astype(np.float32, copy=False)
         except (FingerpsError, ValueError) as exc:
             self.get_logger().error(f"flat field refused: {exc}")
 

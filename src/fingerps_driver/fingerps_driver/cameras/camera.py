@@ -136,8 +136,9 @@ class Camera(Device):
         self.frames_grabbed = 0
         """Frames returned by ``grab`` since construction."""
         self.refused_settings: list[str] = []
-        """Settings the device refused (``"fps=60"``...), kept for the caller to report; only
-        a backend that goes on after a refusal (``OpenCvCamera``) adds to it."""
+        """Settings the device refused (``"fps=60"``...) since the last ``open``, kept for
+        the caller to report; only a backend that goes on after a refusal (``OpenCvCamera``)
+        adds to it."""
 
     @property
     def width(self) -> int:

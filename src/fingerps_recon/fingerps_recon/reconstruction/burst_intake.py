@@ -139,7 +139,7 @@ def flat_field_maps(flat: FlatField, limits: BurstLimits) -> np.ndarray:
             f"{limits.max_frames})")
     for image in flat.maps:
         _check_image_size(image, limits, "flat-field map")
-    maps = images_to_array(list(flat.maps))
+    maps = images_to_array(flat.maps)
     if maps.ndim != 3:
         raise FingerpsReconError(
             f"flat-field maps of {flat.maps[0].encoding}: they must have one channel (32FC1)")
