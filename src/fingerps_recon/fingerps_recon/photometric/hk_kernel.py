@@ -1,32 +1,40 @@
-"""Compiled (numba) passes of the HK solver (:mod:`photometric.hk_solver`, backend "numba").
+"""Compiled (numba) passes of the HK solver (:mod:`photometric.hk_solver`): paper Eq. 4, 6-7.
 
-The same Levenberg–Marquardt algorithm as the solver's numpy backend -- the same residual,
-Jacobian, damping, accept/reject and Schur-complement step for the global scale A, in the
-same float32 arithmetic -- with each pass over the pixels fused: per chunk of ``CHUNK``
-pixels (``prange`` over the chunks, one chunk per thread at a time) the model, its Jacobian
-and the 15 Gauss–Newton sums of every pixel are formed measurement by measurement while the
-chunk's sums stay in the core's L1 cache, the step is taken in the same pass, and nothing
-of size (K, N) is written. The loops over a chunk's pixels are written so that LLVM
-vectorises them (AVX2: 8 pixels at a time): no calls (``_exp`` is inlined arithmetic), no
-branches (selects), unit strides. The global sums (A's fit, the Schur complement, the
-total cost) are returned per chunk in float64 and added up by the caller in a fixed order,
-so the result does not depend on the number of threads.
+Per chunk of ``CHUNK`` pixels (``prange`` over the chunks, one chunk per thread at a time)
+the model of Eq. 4, its Jacobian and the 15 Gauss–Newton sums of every pixel are formed
+light by light while the chunk's sums stay in the core's L1 cache, the step is taken in
+the same pass, and nothing of size (K, N) is written. The global sums (A's fit, the Schur
+complement, the total cost) are returned per chunk in float64 and added up by the caller
+in a fixed order, so the result does not depend on the number of threads.
 
-Layout, as the numpy backend's columns: ``values`` (I where usable, else 0) and ``usable``
-(K, N); ``lights`` (3, K, N) or (3, K, 1); ``views`` (3, N) or (3, 1); ``intensity`` e_k
-and ``phase`` e_k p(c, g) (K, N) or (K, 1); the state component-major: normals (3, N),
-sums (15, N) with rows ``_H11`` ... ``_COST`` of the solver. Scalars: ``a`` (A), ``a_tau``
-(A tau_d) and ``neg_tau`` (-tau_d) as float32; ``consts`` float32 (indices below).
+Layout.
 
-The pixels are also gathered from the images (:func:`select_pixels`, :func:`gather`, as
-the numpy backend's ``_prepare``) and the result images written (:func:`finish`) here.
-Everything matches the numpy backend operation for operation except exp(): the numpy
-backend uses ``cv2.exp``, this module an inlined polynomial (Cephes expf, relative error
-< 2e-7); results agree to float32 rounding, not bit for bit.
+- The lighting, which depends on the calibration only (:func:`lighting_terms`, once per
+  calibration and camera): per prepared pixel q and light k, ``terms`` (K, N_TERMS, Q)
+  float32 rows ``LX, LY, LZ`` (the unit light direction), ``G`` (e_k p(c, g)) and ``E``
+  (e_k; 0 where the intensity is not usable); ``views`` (3, Q) the unit view directions;
+  ``bad`` (Q,) flags of non-finite or zero directions.
+- A burst (:func:`gather`): the N pixels of its mask, padded to
+  ``chunks * CHUNK`` (padding pixels and those that cannot be solved have no usable
+  measurement, normal (0, 0, 1) and albedo 0: their sums are zero, they take no step and
+  add nothing to the global sums),
+  so that every loop over a chunk has the constant trip count ``CHUNK``. ``meas``
+  (chunks, K, N_MEAS, CHUNK) float32: per chunk and light one contiguous block of the
+  lighting rows and ``VALUE`` (I), with G, E and I zero where the measurement is not
+  usable -- so that an unusable measurement adds exactly nothing to any sum, and a pass
+  reads one sequential stream. Views (3, Np), the state component-major: normals
+  (3, Np), sums (15, Np) with rows ``_H11`` ... ``_COST`` of the solver. Scalars: ``a``
+  (A), ``a_tau`` (A tau_d) and ``neg_tau`` (-tau_d) as float32; ``consts`` float32
+  (indices below).
 
-Importing this module needs numba (ImportError otherwise; the solver then uses numpy). The
-compiled code is cached on disk (``cache=True``: in the package's ``__pycache__``, else the
-user's cache directory, or ``NUMBA_CACHE_DIR`` when set); where no cache directory is
+Vectorisation (LLVM, 8 float32 lanes with AVX2, 16 with AVX-512): the loops over a
+chunk's pixels have no calls and no branches -- min/max are written as selects
+(:func:`_fmax`, :func:`_fmin`: numba's builtin ``min``/``max`` on floats keep LLVM from
+vectorising a loop), exp() is inlined arithmetic (Cephes expf, relative error < 2e-7)
+whose power of two is a bit cast (:func:`_int_bits_as_float`) -- and unit strides.
+
+The compiled code is cached on disk (``cache=True``: in the package's ``__pycache__``, else
+the user's cache directory, or ``NUMBA_CACHE_DIR`` when set); where no cache directory is
 writable the kernels are compiled in every process (a warning says so).
 """
 
@@ -36,7 +44,9 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
 from numba import prange
+from numba.extending import intrinsic
 
 from fingerps_recon.photometric.kernel_compile import (
     drop_stale_caches,
@@ -49,26 +59,25 @@ from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
 _U = numba.uint64
 
-# Pixels per chunk of the parallel loops (the chunk's scratch arrays stay in the core's
-# L1/L2 cache).
+# Pixels per chunk of the parallel loops (the chunk's scratch arrays stay in L1/L2).
 CHUNK = 256
 # Indices into ``consts`` (float32).
 VALUE_FLOOR, DERIVATIVE_FLOOR, LAMBDA_DOWN, LAMBDA_UP, LAMBDA_MIN, LAMBDA_MAX = range(6)
 N_CONSTS = 6
 N_SUMS = 15
-# Offsets of the rows of a chunk's 1-D scratch arrays (indexed _U(offset + i): rows at
-# constant distances, which LLVM tells apart without run-time overlap checks). ``scr``: the
-# view direction and derived per-pixel terms, the current measurement's light direction,
-# e p and e, and the commit's choice (1 or 0); ``terms``: the current measurement's Jacobian
-# columns j1, j2 (tangent steps), C = e c_i, P = e p S and r = I - f; ``acc``: the 15 sums
-# (or the linear fit's 5) being accumulated. Separate arrays, and few rows written per loop:
-# LLVM's loop vectorizer gives up on loops with more dependences than it analyses.
-(_VX, _VY, _VZ, _CR, _INV_CR, _DINV_CR, _VTX, _VTY, _SEEN, _LX, _LY, _LZ, _G, _E, _TAKE) = (
-    row * CHUNK for row in range(15)
-)
-_SCRATCH = 15 * CHUNK
-_J1, _J2, _C, _P, _R = (row * CHUNK for row in range(5))
-_TERMS = 5 * CHUNK
+# Rows of the lighting terms of a light (``terms[k]``) and of a chunk's block of
+# measurements of one light (``meas[chunk, k]``: the same rows, then the value).
+LX, LY, LZ, G, E, VALUE = range(6)
+N_TERMS = 5
+N_MEAS = 6
+# Bits of ``bad``: the pixel's light direction (any light) or view direction is not finite,
+# or zero.
+BAD_LIGHT, ZERO_LIGHT, BAD_VIEW, ZERO_VIEW = 1, 2, 4, 8
+# Offsets of the rows of a chunk's scratch (indexed _U(offset + i), rows CHUNK apart):
+# c_r (floored), 1/c_r, the capped 1/c_r of the derivatives, v.t_x, v.t_y, whether
+# v.n > 0 (1 or 0), and the commit's choice (1 or 0).
+_CR, _INV_CR, _DINV_CR, _VTX, _VTY, _SEEN, _TAKE = (row * CHUNK for row in range(7))
+_SCRATCH = 7 * CHUNK
 _ACC = tuple(row * CHUNK for row in range(N_SUMS))
 
 _F0 = np.float32(0.0)
@@ -98,185 +107,290 @@ _adjugate = inline_kernel(symmetric_adjugate)
 _adjugate_solve = inline_kernel(adjugate_solve)
 
 
+@intrinsic
+def _int_bits_as_float(typingctx, bits):
+    """The float32 whose bits are the int32 ``bits`` (an LLVM bit cast, which vectorises;
+    ``np.int32(bits).view(np.float32)`` does not)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+    return numba.float32(numba.int32), codegen
+
+
+@inline_kernel
+def _fmax(a, b):
+    """max(a, b) as a select (NaN in ``a`` propagates)."""
+    return b if a < b else a
+
+
+@inline_kernel
+def _fmin(a, b):
+    """min(a, b) as a select (NaN in ``a`` propagates)."""
+    return b if a > b else a
+
+
 @inline_kernel
 def _exp(x):
-    """exp(x), float32, relative error < 2e-7 for x >= -87.33 (branch-free, inlined)."""
-    x = max(x, _EXP_LO)
+    """exp(x), float32, relative error < 2e-7 for -87.33 <= x <= 88 (branch-free, inlined)."""
+    x = _fmax(x, _EXP_LO)
     fn = np.floor(x * _LOG2E + _HALF)
     r = x - fn * _LN2_HI
     r = r - fn * _LN2_LO
     poly = ((((_P0 * r + _P1) * r + _P2) * r + _P3) * r + _P4) * r + _P5
     poly = poly * (r * r) + r + _F1
-    bits = (np.int32(fn) + _BIAS) << _MANTISSA  # 2^fn
-    return poly * np.int32(bits).view(np.float32)
+    return poly * _int_bits_as_float((np.int32(fn) + _BIAS) << _MANTISSA)  # poly 2^fn
+
+
+# -- The lighting of a calibration, and a burst's pixels in the passes' layout. --
+
+@parallel_kernel
+def lighting_terms(pixels, lights, views, intensity, hg, physical, terms, v_out, bad):
+    """The lighting of the image pixels ``pixels`` (Q,) (the module docstring): ``terms``
+    (K, N_TERMS, Q) float32, ``v_out`` (3, Q) float32 and ``bad`` (Q,) uint8. ``lights``
+    (K, H*W, 3) per pixel or (K, 1, 3); ``views`` (H*W, 3) per pixel or (1, 3);
+    ``intensity`` (K, H*W) per pixel or (K, 1) (a measurement whose e is not finite or
+    <= 0 is left out: E = G = 0); ``hg`` float32 (1 + g^2, 2 g, 1 - g^2, 4 pi): the
+    Henyey–Greenstein constants; ``physical``: the scattering cosine is -l.v (else l.v)."""
+    count = pixels.shape[0]
+    k_count = terms.shape[0]
+    hg_a, hg_b, hg_num, four_pi = hg[0], hg[1], hg[2], hg[3]
+    per_pixel_lights = lights.shape[1] > 1
+    per_pixel_views = views.shape[0] > 1
+    per_pixel_intensity = intensity.shape[1] > 1
+    one, zero = np.float32(1.0), np.float32(0.0)
+    for chunk in prange((count + CHUNK - 1) // CHUNK):
+        for q in range(chunk * CHUNK, min(chunk * CHUNK + CHUNK, count)):
+            p = pixels[q]
+            pv = p if per_pixel_views else 0
+            vx, vy, vz = (np.float32(views[pv, 0]), np.float32(views[pv, 1]),
+                          np.float32(views[pv, 2]))
+            norm = np.sqrt(vx * vx + vy * vy + vz * vz)
+            flag = 0 if norm - norm == 0 else BAD_VIEW  # (not inf, not nan)
+            flag = flag if norm != 0 else ZERO_VIEW
+            vx, vy, vz = vx / norm, vy / norm, vz / norm
+            v_out[0, q], v_out[1, q], v_out[2, q] = vx, vy, vz
+            pl = p if per_pixel_lights else 0
+            pe = p if per_pixel_intensity else 0
+            for k in range(k_count):
+                lx = np.float32(lights[k, pl, 0])
+                ly = np.float32(lights[k, pl, 1])
+                lz = np.float32(lights[k, pl, 2])
+                norm = np.sqrt(lx * lx + ly * ly + lz * lz)
+                lflag = 0 if norm - norm == 0 else BAD_LIGHT
+                flag |= lflag if norm != 0 else ZERO_LIGHT
+                lx, ly, lz = lx / norm, ly / norm, lz / norm
+                e = np.float32(intensity[k, pe])
+                usable = math.isfinite(e) and e > 0
+                c_phi = lx * vx + ly * vy + lz * vz
+                c_sc = -c_phi if physical else c_phi
+                c_sc = _fmin(_fmax(c_sc, -one), one)
+                denom = hg_a - hg_b * c_sc
+                phase = hg_num / (four_pi * denom * np.sqrt(denom))
+                terms[k, LX, q], terms[k, LY, q], terms[k, LZ, q] = lx, ly, lz
+                terms[k, G, q] = e * phase if usable else zero
+                terms[k, E, q] = e if usable else zero
+            bad[q] = np.uint8(flag)
+
+
+@parallel_kernel
+def gather(cand, index, images, usable, normals, albedo, terms, views, bad, min_cr, meas,
+           v_dirs, n0, rho0, solved, counts, flags):
+    """The mask's pixels ``cand`` (N,) (increasing image indices) in the passes' layout,
+    padded to ``chunks * CHUNK`` (the module docstring): ``meas`` (chunks, K, N_MEAS, CHUNK)
+    float32, ``v_dirs`` (3, Np), ``n0`` (3, Np) float32 unit initial normals (tilted towards
+    the camera where v.n < ``min_cr``), ``rho0`` (Np,) float32, ``counts`` (N,) float64
+    the usable measurements, ``solved`` (N,) bool the pixels that can be solved -- a
+    finite, non-zero initial normal, a finite albedo, at least 3 usable measurements; the
+    others get no usable measurement --, and ``flags`` (chunks,) uint8 the ``bad`` bits of
+    the chunk's solved pixels. ``index`` (H*W,) int64 each image pixel's lighting column
+    (every candidate has one); ``images`` (K, H*W); ``usable`` (K, H*W) bool (a measurement
+    is usable where it is True, its value finite and its E > 0); ``normals`` (H*W, 3);
+    ``albedo`` (H*W,); ``terms``, ``views``, ``bad`` the lighting (:func:`lighting_terms`).
+
+    The chunk's pixels are copied run by run (consecutive image pixels have consecutive
+    lighting columns), so the copies are contiguous loops that LLVM vectorises."""
+    count = cand.shape[0]
+    k_count = images.shape[0]
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for chunk in prange(meas.shape[0]):
+        j0 = chunk * CHUNK
+        m = min(j0 + CHUNK, count) - j0
+        starts = np.empty(CHUNK + 1, np.int64)  # the runs: [starts[r], starts[r + 1])
+        runs = 0
+        for i in range(m):
+            if i == 0 or cand[j0 + i] != cand[j0 + i - 1] + 1:
+                starts[runs] = i
+                runs += 1
+        starts[runs] = m
+        for i in range(m):
+            counts[j0 + i] = 0.0
+        for k in range(k_count):
+            block = meas[chunk, k]
+            for r in range(runs):
+                s0, s1 = starts[r], starts[r + 1]
+                p0 = cand[j0 + s0]
+                q0 = index[p0] - s0
+                p0 = p0 - s0
+                for i in range(s0, s1):
+                    v = np.float32(images[k, p0 + i])
+                    energy = terms[k, E, q0 + i]
+                    u = usable[k, p0 + i] & (v - v == zero) & (energy > zero)
+                    counts[j0 + i] += 1.0 if u else 0.0
+                    block[LX, i] = terms[k, LX, q0 + i]
+                    block[LY, i] = terms[k, LY, q0 + i]
+                    block[LZ, i] = terms[k, LZ, q0 + i]
+                    block[G, i] = terms[k, G, q0 + i] if u else zero
+                    block[E, i] = energy if u else zero
+                    block[VALUE, i] = v if u else zero
+            for i in range(m, CHUNK):
+                block[LX, i], block[LY, i], block[LZ, i] = zero, zero, one
+                block[G, i], block[E, i], block[VALUE, i] = zero, zero, zero
+        chunk_flags = 0
+        for i in range(CHUNK):
+            j = j0 + i
+            ok = False
+            nx, ny, nz, rho, norm = 0.0, 0.0, 1.0, 0.0, 1.0
+            vx, vy, vz = zero, zero, one
+            if i < m:
+                p = cand[j]
+                q = index[p]
+                vx, vy, vz = views[0, q], views[1, q], views[2, q]
+                nx, ny, nz = float(normals[p, 0]), float(normals[p, 1]), float(normals[p, 2])
+                norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+                rho = float(albedo[p])
+                ok = (counts[j] >= 3 and math.isfinite(norm) and norm > 0.0
+                      and math.isfinite(rho))
+                solved[j] = ok
+                if ok:
+                    chunk_flags |= bad[q]
+                else:  # not solved: no usable measurement
+                    for k in range(k_count):
+                        meas[chunk, k, G, i] = zero
+                        meas[chunk, k, E, i] = zero
+                        meas[chunk, k, VALUE, i] = zero
+            v_dirs[0, j], v_dirs[1, j], v_dirs[2, j] = vx, vy, vz
+            if ok:  # unit initial normal, tilted towards the camera
+                nx, ny, nz = nx / norm, ny / norm, nz / norm
+                fx, fy, fz = float(vx), float(vy), float(vz)
+                cr = fx * nx
+                cr += fy * ny
+                cr += fz * nz
+                if cr < min_cr:  # facing away from the camera
+                    nx += (min_cr - cr) * fx
+                    ny += (min_cr - cr) * fy
+                    nz += (min_cr - cr) * fz
+                    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+                    nx, ny, nz = nx / norm, ny / norm, nz / norm
+            else:
+                nx, ny, nz, rho = 0.0, 0.0, 1.0, 0.0
+            n0[0, j], n0[1, j], n0[2, j] = nx, ny, nz
+            rho0[j] = rho
+        flags[chunk] = np.uint8(chunk_flags)
 
 
 @serial_kernel
-def _chunk_span(chunk, count):
-    start = chunk * CHUNK
-    return start, min(start + CHUNK, count) - start
-
-
-@serial_kernel
-def _view_terms(n, j0, m, views, consts, scr):
-    """Per pixel of the chunk: c_r = v.n (floored), 1/c_r, the capped 1/c_r of the
+def _view_terms(n, views, j0, consts, scr):
+    """Per pixel of the chunk at ``j0``: c_r = v.n (floored), 1/c_r, the capped 1/c_r of the
     derivatives, v.t_x, v.t_y for the tangent directions t = e - n_axis n, and whether
     v.n > 0 (1 or 0), into the scratch."""
-    if views.shape[1] > 1:
-        for i in range(m):
-            j = _U(j0 + i)
-            scr[_U(_VX + i)] = views[0, j]
-            scr[_U(_VY + i)] = views[1, j]
-            scr[_U(_VZ + i)] = views[2, j]
-    else:
-        vx, vy, vz = views[0, 0], views[1, 0], views[2, 0]
-        for i in range(m):
-            scr[_U(_VX + i)], scr[_U(_VY + i)], scr[_U(_VZ + i)] = vx, vy, vz
     value_floor = consts[VALUE_FLOOR]
     derivative_floor = consts[DERIVATIVE_FLOOR]
-    for i in range(m):
+    for i in range(CHUNK):
         j = _U(j0 + i)
         nx, ny, nz = n[0, j], n[1, j], n[2, j]
-        vx, vy, vz = scr[_U(_VX + i)], scr[_U(_VY + i)], scr[_U(_VZ + i)]
+        vx, vy, vz = views[0, j], views[1, j], views[2, j]
         cr = vx * nx
         cr += vy * ny
         cr += vz * nz
         scr[_U(_SEEN + i)] = _F1 if cr > _F0 else _F0
-        cr = max(cr, value_floor)
+        cr = _fmax(cr, value_floor)
         scr[_U(_CR + i)] = cr
         scr[_U(_INV_CR + i)] = _F1 / cr
-        scr[_U(_DINV_CR + i)] = _F1 / max(cr, derivative_floor)
+        scr[_U(_DINV_CR + i)] = _F1 / _fmax(cr, derivative_floor)
         scr[_U(_VTX + i)] = vx - cr * nx
         scr[_U(_VTY + i)] = vy - cr * ny
 
 
-@inline_kernel
-def _row_into_scratch(k, j0, m, per_light, row, scr):
-    """Row k of ``per_light`` over the chunk's pixels (``per_light`` (K, N)), or its one value
-    for every pixel (``per_light`` (K, 1)), into the scratch row at offset ``row``."""
-    if per_light.shape[1] > 1:
-        for i in range(m):
-            scr[_U(row + i)] = per_light[k, _U(j0 + i)]
-    else:
-        value = per_light[k, 0]
-        for i in range(m):
-            scr[_U(row + i)] = value
-
-
 @serial_kernel
-def _light_terms(k, j0, m, lights, intensity, phase, scr):
-    """Light k's direction, e_k p and e_k for the chunk's pixels into the scratch."""
-    if lights.shape[2] > 1:
-        for i in range(m):
-            j = _U(j0 + i)
-            scr[_U(_LX + i)] = lights[0, k, j]
-            scr[_U(_LY + i)] = lights[1, k, j]
-            scr[_U(_LZ + i)] = lights[2, k, j]
-    else:
-        lx, ly, lz = lights[0, k, 0], lights[1, k, 0], lights[2, k, 0]
-        for i in range(m):
-            scr[_U(_LX + i)], scr[_U(_LY + i)], scr[_U(_LZ + i)] = lx, ly, lz
-    _row_into_scratch(k, j0, m, phase, _G, scr)
-    _row_into_scratch(k, j0, m, intensity, _E, scr)
-
-
-@serial_kernel
-def _model_sums(n, rho, j0, m, a, a_tau, neg_tau, values, usable, lights, intensity, phase,
-                consts, scr, terms, acc, sums):
+def _model_sums(n, rho, chunk, a, a_tau, neg_tau, meas, consts, scr, acc, sums):
     """The 15 Gauss–Newton sums of the chunk's pixels at normals ``n``, albedo ``rho`` and
-    A = ``a`` into ``sums[:, j0:j0 + m]`` (as the numpy backend's ``_Evaluator.block_sums``,
-    operation for operation): J^T J (upper triangle, unknowns (a, b, rho)), J^T r, J^T P,
-    P.P, P.r, r.r, with r = I - f over the usable measurements and P = df/dA. The scratch
-    rows of :func:`_view_terms` must be set."""
+    A = ``a`` into ``sums[:, chunk * CHUNK:][:, :CHUNK]``: J^T J (upper triangle, unknowns
+    (a, b, rho)), J^T r, J^T P, P.P, P.r, r.r, with r = I - f over the usable measurements
+    and P = df/dA. The scratch rows of :func:`_view_terms` must be set."""
+    j0 = chunk * CHUNK
     for i in range(N_SUMS * CHUNK):
         acc[i] = _F0
     value_floor = consts[VALUE_FLOOR]
     max_inv = _F1 / consts[DERIVATIVE_FLOOR]
-    for k in range(values.shape[0]):
-        _light_terms(k, j0, m, lights, intensity, phase, scr)
-        for i in range(m):
+    for k in range(meas.shape[1]):
+        block = meas[chunk, k]
+        for i in range(CHUNK):
             j = _U(j0 + i)
-            # (Written out here and in linear_sums: an inlined helper returning a tuple keeps
-            # LLVM from vectorising the loop.)
             nx, ny, nz = n[0, j], n[1, j], n[2, j]
-            ci = scr[_U(_LX + i)] * nx + scr[_U(_LY + i)] * ny + scr[_U(_LZ + i)] * nz
-            lit = usable[k, j] & (ci > _F0) & (scr[_U(_SEEN + i)] > _F0)
-            # e p and e where lit and usable, else 0 (finite factors: a product, not a branch
-            # that would keep LLVM from vectorising)
-            lit_f = _F1 if lit else _F0
-            g = scr[_U(_G + i)] * lit_f
-            em = scr[_U(_E + i)] * lit_f
-            ci = max(ci, value_floor)
+            lx, ly, lz = block[LX, _U(i)], block[LY, _U(i)], block[LZ, _U(i)]
+            ci = lx * nx + ly * ny + lz * nz
+            # e p and e where lit (zero where not usable): a product, not a branch
+            lit_f = _F1 if (ci > _F0) & (scr[_U(_SEEN + i)] > _F0) else _F0
+            g = block[G, _U(i)] * lit_f
+            em = block[E, _U(i)] * lit_f
+            ci = _fmax(ci, value_floor)
             inv_ci = _F1 / ci
             q = ci / (ci + scr[_U(_CR + i)])
             big_e = _exp((inv_ci + scr[_U(_INV_CR + i)]) * neg_tau)
             p = (_F1 - big_e) * q * g  # e p S
             c = ci * em  # e c_i
-            val = values[k, j]  # 0 where not usable
             rho_j = rho[j]
             pa = p * a
             u = (_F1 - q) * pa
-            r = val - pa - c * rho_j
+            r = block[VALUE, _U(i)] - pa - c * rho_j  # (I is 0 where not usable)
             wq = g * q * big_e * a_tau
             d_inv_cr = scr[_U(_DINV_CR + i)]
-            d_inv_ci = min(inv_ci, max_inv)
+            d_inv_ci = _fmin(inv_ci, max_inv)
             dfr = (wq * d_inv_cr + u) * d_inv_cr  # -df/dc_r
             dfi = (u - wq * d_inv_ci) * d_inv_ci + em * rho_j  # df/dc_i
-            terms[_U(_J1 + i)] = (scr[_U(_LX + i)] - ci * n[0, j]) * dfi - dfr * scr[_U(_VTX + i)]
-            terms[_U(_J2 + i)] = (scr[_U(_LY + i)] - ci * n[1, j]) * dfi - dfr * scr[_U(_VTY + i)]
-            terms[_U(_C + i)] = c
-            terms[_U(_P + i)] = p
-            terms[_U(_R + i)] = r
-        for i in range(m):
-            j1, j2, c = terms[_U(_J1 + i)], terms[_U(_J2 + i)], terms[_U(_C + i)]
+            j1 = (lx - ci * nx) * dfi - dfr * scr[_U(_VTX + i)]
+            j2 = (ly - ci * ny) * dfi - dfr * scr[_U(_VTY + i)]
             acc[_U(_ACC[0] + i)] += j1 * j1
             acc[_U(_ACC[1] + i)] += j1 * j2
             acc[_U(_ACC[2] + i)] += j1 * c
             acc[_U(_ACC[3] + i)] += j2 * j2
             acc[_U(_ACC[4] + i)] += j2 * c
             acc[_U(_ACC[5] + i)] += c * c
-        for i in range(m):
-            j1, j2 = terms[_U(_J1 + i)], terms[_U(_J2 + i)]
-            c, r = terms[_U(_C + i)], terms[_U(_R + i)]
             acc[_U(_ACC[6] + i)] += j1 * r
             acc[_U(_ACC[7] + i)] += j2 * r
             acc[_U(_ACC[8] + i)] += c * r
-            acc[_U(_ACC[14] + i)] += r * r
-        for i in range(m):
-            j1, j2, c = terms[_U(_J1 + i)], terms[_U(_J2 + i)], terms[_U(_C + i)]
-            p, r = terms[_U(_P + i)], terms[_U(_R + i)]
             acc[_U(_ACC[9] + i)] += j1 * p
             acc[_U(_ACC[10] + i)] += j2 * p
             acc[_U(_ACC[11] + i)] += c * p
             acc[_U(_ACC[12] + i)] += p * p
             acc[_U(_ACC[13] + i)] += p * r
+            acc[_U(_ACC[14] + i)] += r * r
     for row in range(N_SUMS):
         off = row * CHUNK
-        for i in range(m):
+        for i in range(CHUNK):
             sums[row, _U(j0 + i)] = acc[_U(off + i)]
 
 
 @serial_kernel
-def _steps(j0, m, sums, lam, consts, delta0, w):
-    """Damped Gauss–Newton steps of the chunk's pixels (as the numpy backend's
-    ``_block_step``): delta0 = Hd^-1 J^T r, w = Hd^-1 J^T P with Hd = H + lambda diag(H)
-    inverted by its adjugate (:mod:`photometric.symmetric_solve`); a (nearly) singular Hd
-    gives a zero step and raises the pixel's damping."""
+def _steps(j0, sums, lam, consts, delta0, w):
+    """Damped Gauss–Newton steps of the chunk's pixels: delta0 = Hd^-1 J^T r,
+    w = Hd^-1 J^T P with Hd = H + lambda diag(H) inverted by its adjugate
+    (:mod:`photometric.symmetric_solve`); a (nearly) singular Hd gives a zero step and
+    raises the pixel's damping."""
     up, top = consts[LAMBDA_UP], consts[LAMBDA_MAX]
-    for i in range(m):
+    for i in range(CHUNK):
         j = _U(j0 + i)
         h11, h12, h13 = sums[0, j], sums[1, j], sums[2, j]
         h22, h23, h33 = sums[3, j], sums[4, j], sums[5, j]
         lj = lam[j]
         tiny = (h11 + h22 + h33) * _TINY_TRACE + _TINY
-        d1 = h11 + lj * max(h11, tiny)
-        d2 = h22 + lj * max(h22, tiny)
-        d3 = h33 + lj * max(h33, tiny)
+        d1 = h11 + lj * _fmax(h11, tiny)
+        d2 = h22 + lj * _fmax(h22, tiny)
+        d3 = h33 + lj * _fmax(h33, tiny)
         a11, a12, a13, a22, a23, a33, det = _adjugate(d1, h12, h13, d2, h23, d3)
         ok = det > _SINGULAR * d1 * d2 * d3
         inv = _F1 / det
         inv_det = inv if ok else _F0
-        raised = min(lj * up, top)
+        raised = _fmin(lj * up, top)
         lam[j] = lj if ok else raised  # (nearly) singular: no step, more damping next time
         g1, g2, g3 = sums[6, j], sums[7, j], sums[8, j]
         c1, c2, c3 = sums[9, j], sums[10, j], sums[11, j]
@@ -287,11 +401,11 @@ def _steps(j0, m, sums, lam, consts, delta0, w):
 
 
 @serial_kernel
-def _step_parts(j0, m, sums, delta0, w, parts, chunk):
+def _step_parts(j0, sums, delta0, w, parts, chunk):
     """The chunk's parts of the Schur complement on A into ``parts[chunk, 1:5]`` (float64):
     P.r, (J^T P).delta0, P.P, (J^T P).w."""
     ga = cd = dd = cw = 0.0
-    for i in range(m):
+    for i in range(CHUNK):
         j = _U(j0 + i)
         c1, c2, c3 = sums[9, j], sums[10, j], sums[11, j]
         ga += float(sums[13, j])
@@ -302,35 +416,32 @@ def _step_parts(j0, m, sums, delta0, w, parts, chunk):
 
 
 @parallel_kernel
-def linear_sums(n, values, usable, lights, views, intensity, phase, neg_tau, consts, rows,
-                parts):
+def linear_sums(n, meas, views, neg_tau, consts, rows, parts):
     """For A's and rho's joint linear fit at the normals ``n``: per pixel P.P, P.C, C.C, P.I,
-    C.I into ``rows`` (5, N) float32 (P = e p S, C = e c_i over the lit usable
+    C.I into ``rows`` (5, Np) float32 (P = e p S, C = e c_i over the lit usable
     measurements), and per chunk the parts of the fit's numerator sum (P.I - P.C C.I / C.C)
     and denominator sum (P.P - (P.C)^2 / C.C) into ``parts`` (chunks, 2) float64."""
-    count = n.shape[1]
     value_floor = consts[VALUE_FLOOR]
     for chunk in prange(parts.shape[0]):
-        j0, m = _chunk_span(chunk, count)
+        j0 = chunk * CHUNK
         scr = np.empty(_SCRATCH, np.float32)
         acc = np.zeros(5 * CHUNK, np.float32)
-        _view_terms(n, j0, m, views, consts, scr)
-        for k in range(values.shape[0]):
-            _light_terms(k, j0, m, lights, intensity, phase, scr)
-            for i in range(m):
+        _view_terms(n, views, j0, consts, scr)
+        for k in range(meas.shape[1]):
+            block = meas[chunk, k]
+            for i in range(CHUNK):
                 j = _U(j0 + i)
                 # as in _model_sums
-                ci = (scr[_U(_LX + i)] * n[0, j] + scr[_U(_LY + i)] * n[1, j]
-                      + scr[_U(_LZ + i)] * n[2, j])
-                lit = usable[k, j] & (ci > _F0) & (scr[_U(_SEEN + i)] > _F0)
-                lit_f = _F1 if lit else _F0
-                g = scr[_U(_G + i)] * lit_f
-                em = scr[_U(_E + i)] * lit_f
-                ci = max(ci, value_floor)
+                ci = (block[LX, _U(i)] * n[0, j] + block[LY, _U(i)] * n[1, j]
+                      + block[LZ, _U(i)] * n[2, j])
+                lit_f = _F1 if (ci > _F0) & (scr[_U(_SEEN + i)] > _F0) else _F0
+                g = block[G, _U(i)] * lit_f
+                em = block[E, _U(i)] * lit_f
+                ci = _fmax(ci, value_floor)
                 q = ci / (ci + scr[_U(_CR + i)])
                 p = (_F1 - _exp((_F1 / ci + scr[_U(_INV_CR + i)]) * neg_tau)) * q * g
                 c = ci * em
-                val = values[k, j]
+                val = block[VALUE, _U(i)]
                 acc[_U(_ACC[0] + i)] += p * p
                 acc[_U(_ACC[1] + i)] += p * c
                 acc[_U(_ACC[2] + i)] += c * c
@@ -338,12 +449,12 @@ def linear_sums(n, values, usable, lights, views, intensity, phase, neg_tau, con
                 acc[_U(_ACC[4] + i)] += c * val
         for row in range(5):
             off = row * CHUNK
-            for i in range(m):
+            for i in range(CHUNK):
                 rows[row, _U(j0 + i)] = acc[_U(off + i)]
         num = den = 0.0
-        for i in range(m):
+        for i in range(CHUNK):
             pp, pc = float(acc[_U(_ACC[0] + i)]), float(acc[_U(_ACC[1] + i)])
-            cc = max(float(acc[_U(_ACC[2] + i)]), 1e-30)
+            cc = _fmax(float(acc[_U(_ACC[2] + i)]), 1e-30)
             num += float(acc[_U(_ACC[3] + i)]) - pc * float(acc[_U(_ACC[4] + i)]) / cc
             den += pp - pc * pc / cc
         parts[chunk, 0] = num
@@ -351,54 +462,51 @@ def linear_sums(n, values, usable, lights, views, intensity, phase, neg_tau, con
 
 
 @parallel_kernel
-def start(n, rho, lam, rows, scale, a_tau, neg_tau, values, usable, lights, views, intensity,
-          phase, consts, sums, delta0, w, parts):
+def start(n, rho, lam, rows, scale, a_tau, neg_tau, meas, views, consts, sums, delta0, w,
+          parts):
     """rho in closed form for A = ``scale`` (float64) at the initial normals (from ``rows``
     of :func:`linear_sums`), the pixels' sums there and their first step. Per chunk into
     ``parts`` (chunks, 5) float64: the cost and the Schur parts (:func:`_step_parts`)."""
-    count = n.shape[1]
     a = np.float32(scale)
     for chunk in prange(parts.shape[0]):
-        j0, m = _chunk_span(chunk, count)
+        j0 = chunk * CHUNK
         scr = np.empty(_SCRATCH, np.float32)
-        for i in range(m):
+        for i in range(CHUNK):
             j = _U(j0 + i)
             pc, cc, c_i = float(rows[1, j]), float(rows[2, j]), float(rows[4, j])
-            fitted = max((c_i - scale * pc) / max(cc, 1e-30), 0.0)
+            fitted = _fmax((c_i - scale * pc) / _fmax(cc, 1e-30), 0.0)
             kept = float(rho[j])
             rho[j] = fitted if cc > 0.0 else kept
-        _view_terms(n, j0, m, views, consts, scr)
-        _model_sums(n, rho, j0, m, a, a_tau, neg_tau, values, usable, lights, intensity,
-                    phase, consts, scr, np.empty(_TERMS, np.float32),
+        _view_terms(n, views, j0, consts, scr)
+        _model_sums(n, rho, chunk, a, a_tau, neg_tau, meas, consts, scr,
                     np.empty(N_SUMS * CHUNK, np.float32), sums)
-        _steps(j0, m, sums, lam, consts, delta0, w)
-        _step_parts(j0, m, sums, delta0, w, parts, chunk)
+        _steps(j0, sums, lam, consts, delta0, w)
+        _step_parts(j0, sums, delta0, w, parts, chunk)
         cost = 0.0
-        for i in range(m):
+        for i in range(CHUNK):
             cost += float(sums[14, _U(j0 + i)])
         parts[chunk, 0] = cost
 
 
 @parallel_kernel
-def candidate(n, rho, delta0, w, scale, trial, a_tau, neg_tau, values, usable, lights, views,
-              intensity, phase, consts, sums, n_new, rho_new, sums_new, parts):
+def candidate(n, rho, delta0, w, scale, trial, a_tau, neg_tau, meas, views, consts, sums,
+              n_new, rho_new, sums_new, parts):
     """Each pixel's candidate for A -> ``trial`` (float64; step delta0 - (trial - A) w along
     the tangent directions and in rho), its sums at ``trial``, and the choice at ``trial``:
     per chunk into ``parts`` (chunks, 3) float64 the chosen cost, P.r and P.P."""
-    count = n.shape[1]
     d_scale = trial - scale
     d32 = np.float32(d_scale)
     a = np.float32(trial)
     for chunk in prange(parts.shape[0]):
-        j0, m = _chunk_span(chunk, count)
+        j0 = chunk * CHUNK
         scr = np.empty(_SCRATCH, np.float32)
-        for i in range(m):
+        for i in range(CHUNK):
             j = _U(j0 + i)
             sa = delta0[0, j] - d32 * w[0, j]
             sb = delta0[1, j] - d32 * w[1, j]
             sr = delta0[2, j] - d32 * w[2, j]
             nx, ny, nz = n[0, j], n[1, j], n[2, j]
-            # n + a t_x + b t_y, t_x = e_x - n_x n, t_y = e_y - n_y n (_tangent_axes)
+            # n + a t_x + b t_y, t_x = e_x - n_x n, t_y = e_y - n_y n
             mx = nx + sa * (-nx * nx + _F1) + sb * (-ny * nx)
             my = ny + sa * (-nx * ny) + sb * (-ny * ny + _F1)
             mz = nz + sa * (-nx * nz) + sb * (-ny * nz)
@@ -406,13 +514,12 @@ def candidate(n, rho, delta0, w, scale, trial, a_tau, neg_tau, values, usable, l
             n_new[0, j] = mx / norm
             n_new[1, j] = my / norm
             n_new[2, j] = mz / norm
-            rho_new[j] = max(rho[j] + sr, _F0)
-        _view_terms(n_new, j0, m, views, consts, scr)
-        _model_sums(n_new, rho_new, j0, m, a, a_tau, neg_tau, values, usable, lights,
-                    intensity, phase, consts, scr, np.empty(_TERMS, np.float32),
+            rho_new[j] = _fmax(rho[j] + sr, _F0)
+        _view_terms(n_new, views, j0, consts, scr)
+        _model_sums(n_new, rho_new, chunk, a, a_tau, neg_tau, meas, consts, scr,
                     np.empty(N_SUMS * CHUNK, np.float32), sums_new)
         cost = ga = dd = 0.0
-        for i in range(m):
+        for i in range(CHUNK):
             j = _U(j0 + i)
             old_d, old_ga = float(sums[12, j]), float(sums[13, j])
             old = float(sums[14, j]) + d_scale * (d_scale * old_d - 2.0 * old_ga)
@@ -431,7 +538,7 @@ def candidate(n, rho, delta0, w, scale, trial, a_tau, neg_tau, values, usable, l
 
 
 @serial_kernel
-def _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho_new, lam,
+def _keep_better(j0, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho_new, lam,
                  scr, chosen):
     """The commit's choice for the chunk's pixels: each keeps the better of its state and
     its candidate at A = at (``d_old`` = at - A, ``d_new`` = at - trial; float64), with
@@ -442,7 +549,7 @@ def _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho
     low, top = consts[LAMBDA_MIN], consts[LAMBDA_MAX]
     # Loops that write few arrays each (LLVM checks at run time that the arrays a
     # loop writes do not overlap the others, and vectorises only below a limit).
-    for i in range(m):
+    for i in range(CHUNK):
         j = _U(j0 + i)
         old_d, old_ga, old_c = float(sums[12, j]), float(sums[13, j]), float(sums[14, j])
         new_d, new_ga = float(sums_new[12, j]), float(sums_new[13, j])
@@ -454,11 +561,11 @@ def _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho
     for row in range(N_SUMS):  # J^T J, J^T P, P.P of the kept state (the rest below)
         if 6 <= row <= 8 or row >= 13:
             continue
-        for i in range(m):
+        for i in range(CHUNK):
             j = _U(j0 + i)
             cand, kept = sums_new[row, j], sums[row, j]
             sums[row, j] = cand if scr[_U(_TAKE + i)] > _F0 else kept
-    for i in range(m):
+    for i in range(CHUNK):
         # J^T r, P.r, r.r of the kept state at A = at (n, rho unchanged, J kept)
         j = _U(j0 + i)
         accept = scr[_U(_TAKE + i)] > _F0
@@ -478,7 +585,7 @@ def _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho
         sums[7, j] = g2 - delta * sums[10, j]
         sums[8, j] = g3 - delta * sums[11, j]
         sums[13, j] = ga - delta * dd
-    for i in range(m):
+    for i in range(CHUNK):
         j = _U(j0 + i)
         accept = scr[_U(_TAKE + i)] > _F0
         nx, ny, nz, rho_j = n_new[0, j], n_new[1, j], n_new[2, j], rho_new[j]
@@ -488,7 +595,7 @@ def _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho
         n[2, j] = nz if accept else oz
         rho[j] = rho_j if accept else rho_o
         lj = lam[j] * (down if accept else up)
-        lam[j] = min(max(lj, low), top)
+        lam[j] = _fmin(_fmax(lj, low), top)
 
 
 @parallel_kernel
@@ -498,193 +605,46 @@ def commit(n, rho, lam, scale, trial, at, consts, sums, n_new, rho_new, sums_new
     their sums brought to that A: r -> r - (at - A) P), adapts its damping and takes its
     next step. Per chunk into ``parts`` (chunks, 5) float64: the cost and the Schur parts
     (:func:`_step_parts`)."""
-    count = n.shape[1]
     d_old, d_new = at - scale, at - trial
     for chunk in prange(parts.shape[0]):
-        j0, m = _chunk_span(chunk, count)
+        j0 = chunk * CHUNK
         scr = np.empty(_SCRATCH, np.float32)
         chosen = np.empty(CHUNK)  # the chosen states' costs at A = at, float64
-        _keep_better(j0, m, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho_new, lam,
+        _keep_better(j0, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho_new, lam,
                      scr, chosen)
-        _steps(j0, m, sums, lam, consts, delta0, w)
-        _step_parts(j0, m, sums, delta0, w, parts, chunk)
+        _steps(j0, sums, lam, consts, delta0, w)
+        _step_parts(j0, sums, delta0, w, parts, chunk)
         cost = 0.0
-        for i in range(m):
+        for i in range(CHUNK):
             cost += chosen[i]
         parts[chunk, 0] = cost
 
 
-# -- Gathering the masked pixels (the solver's _prepare, numba backend) and the result. --
-# Bits of gather's ``bad`` flags: the pixel's light direction (any light) or view direction
-# is not finite, or zero.
-BAD_LIGHT, ZERO_LIGHT, BAD_VIEW, ZERO_VIEW = 1, 2, 4, 8
-
-
-@inline_kernel
-def _use(k, p, images, usable, intensity):
-    """Measurement k of image pixel p: its value as float32 and whether it is usable (the
-    given ``usable``, or > 0 when ``usable`` has one column; finite; per-pixel intensity
-    finite and > 0)."""
-    v = np.float32(images[k, p])
-    u = usable[k, p] if usable.shape[1] > 1 else v > 0
-    u = u and math.isfinite(v)
-    if intensity.shape[1] > 1:
-        e = np.float32(intensity[k, p])
-        u = u and math.isfinite(e) and e > 0
-    return v, u
-
-
 @parallel_kernel
-def select_pixels(cand, images, usable, intensity, normals, albedo, keep, counts):
-    """Which of the candidate image pixels ``cand`` (N,) can be solved: a finite, non-zero
-    initial normal, a finite albedo and at least 3 usable measurements (``keep`` (N,)
-    bool; ``counts`` (N,) int32 the usable measurements). ``images`` (K, H*W);
-    ``usable`` (K, H*W) bool, or (1, 1) for the default (> 0); ``intensity`` (K, H*W) per
-    pixel or (K, 1); ``normals`` (H*W, 3); ``albedo`` (H*W,)."""
-    count = cand.shape[0]
-    for chunk in prange((count + CHUNK - 1) // CHUNK):
-        j0, m = _chunk_span(chunk, count)
-        for j in range(j0, j0 + m):
-            counts[j] = 0
-        for k in range(images.shape[0]):  # one light at a time: few memory streams at once
-            for j in range(j0, j0 + m):
-                _, u = _use(k, cand[j], images, usable, intensity)
-                counts[j] += 1 if u else 0
-        for j in range(j0, j0 + m):
-            p = cand[j]
-            nx, ny, nz = float(normals[p, 0]), float(normals[p, 1]), float(normals[p, 2])
-            norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-            good = math.isfinite(norm) and norm > 0.0 and math.isfinite(float(albedo[p]))
-            keep[j] = good and counts[j] >= 3
-
-
-@parallel_kernel
-def gather(pix, images, usable, intensity, normals, albedo, lights, views, hg, physical,
-           min_cr, values, use, inten, phase, l_dirs, v_dirs, n0, rho0, counts, bad):
-    """The solvable pixels ``pix`` (N,) in the passes' layout (as the numpy backend's
-    ``_prepare``, operation for operation): ``values`` (K, N) float32 (0 where not usable),
-    ``use`` (K, N) bool, ``inten`` e (K, N) float32 (1 where not usable) when
-    ``intensity`` is per pixel, ``l_dirs`` (3, K, N) float32 unit light directions when
-    ``lights`` (K, H*W, 3) is per pixel, ``v_dirs`` (3, N) float32 unit view directions
-    when ``views`` (H*W, 3) is per pixel, ``phase`` e p(c, g) (K, N) float32 when any of
-    those is per pixel (else these are given, with one column, and not written), ``n0``
-    (3, N) float32 unit initial normals (tilted towards the camera where v.n < ``min_cr``),
-    ``rho0`` (N,) float32, ``counts`` (N,) float64 usable measurements, and ``bad`` (N,)
-    uint8 (``BAD_LIGHT`` ...). ``hg`` float32 (1 + g^2, 2 g, 1 - g^2, 4 pi): the
-    Henyey–Greenstein constants; ``physical``: c = -l.v (else l.v)."""
-    count = pix.shape[0]
-    k_count = images.shape[0]
-    hg_a, hg_b, hg_num, four_pi = hg[0], hg[1], hg[2], hg[3]
-    per_pixel_lights = l_dirs.shape[2] > 1
-    per_pixel_views = v_dirs.shape[1] > 1
-    per_pixel_intensity = inten.shape[1] > 1
-    per_pixel_phase = phase.shape[1] > 1
-    one = np.float32(1.0)
-    for chunk in prange((count + CHUNK - 1) // CHUNK):
-        j0, m = _chunk_span(chunk, count)
-        # The chunk's pixels gathered, one light at a time (few memory streams at once);
-        # then the arithmetic in loops over consecutive columns, which LLVM vectorises.
-        for j in range(j0, j0 + m):
-            p = pix[j]
-            counts[j] = 0.0
-            rho0[j] = albedo[p]
-            if per_pixel_views:
-                v_dirs[0, j], v_dirs[1, j], v_dirs[2, j] = views[p, 0], views[p, 1], views[p, 2]
-        for k in range(k_count):
-            for j in range(j0, j0 + m):
-                p = pix[j]
-                v, u = _use(k, p, images, usable, intensity)
-                use[k, j] = u
-                values[k, j] = v if u else np.float32(0.0)
-                counts[j] += 1.0 if u else 0.0
-                if per_pixel_intensity:
-                    inten[k, j] = np.float32(intensity[k, p]) if u else one
-                if per_pixel_lights:
-                    l_dirs[0, k, j] = lights[k, p, 0]
-                    l_dirs[1, k, j] = lights[k, p, 1]
-                    l_dirs[2, k, j] = lights[k, p, 2]
-        for j in range(j0, j0 + m):
-            bad[_U(j)] = 0
-        if per_pixel_views:  # unit view directions (as _unit_columns)
-            for j in range(j0, j0 + m):
-                j = _U(j)
-                vx, vy, vz = v_dirs[0, j], v_dirs[1, j], v_dirs[2, j]
-                norm = vx * vx
-                norm += vy * vy
-                norm += vz * vz
-                norm = np.sqrt(norm)
-                finite = norm - norm == 0  # (not inf, not nan)
-                flag = 0 if finite else BAD_VIEW
-                flag = flag if norm != 0 else ZERO_VIEW
-                bad[j] = bad[j] | np.uint8(flag)
-                v_dirs[0, j], v_dirs[1, j], v_dirs[2, j] = vx / norm, vy / norm, vz / norm
-        for k in range(k_count):
-            if per_pixel_lights:  # unit light directions (as _unit_columns)
-                for j in range(j0, j0 + m):
-                    j = _U(j)
-                    lx, ly, lz = l_dirs[0, k, j], l_dirs[1, k, j], l_dirs[2, k, j]
-                    norm = lx * lx
-                    norm += ly * ly
-                    norm += lz * lz
-                    norm = np.sqrt(norm)
-                    finite = norm - norm == 0
-                    flag = 0 if finite else BAD_LIGHT
-                    flag = flag if norm != 0 else ZERO_LIGHT
-                    bad[j] = bad[j] | np.uint8(flag)
-                    l_dirs[0, k, j], l_dirs[1, k, j] = lx / norm, ly / norm
-                    l_dirs[2, k, j] = lz / norm
-            if per_pixel_phase:  # e p(c, g) (as henyey_greenstein)
-                for j in range(j0, j0 + m):
-                    jl = _U(j) if per_pixel_lights else _U(0)
-                    jv = _U(j) if per_pixel_views else _U(0)
-                    je = _U(j) if per_pixel_intensity else _U(0)
-                    c_phi = l_dirs[0, k, jl] * v_dirs[0, jv]
-                    c_phi += l_dirs[1, k, jl] * v_dirs[1, jv]
-                    c_phi += l_dirs[2, k, jl] * v_dirs[2, jv]
-                    c_sc = -c_phi if physical else c_phi
-                    c_sc = min(max(c_sc, -one), one)
-                    denom = hg_a - hg_b * c_sc
-                    phase[k, _U(j)] = inten[k, je] * (hg_num / (four_pi * denom * np.sqrt(denom)))
-        for j in range(j0, j0 + m):  # unit initial normals, tilted towards the camera
-            p = pix[j]
-            nx, ny, nz = float(normals[p, 0]), float(normals[p, 1]), float(normals[p, 2])
-            norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-            nx, ny, nz = nx / norm, ny / norm, nz / norm
-            jv = j if per_pixel_views else 0
-            fx, fy, fz = float(v_dirs[0, jv]), float(v_dirs[1, jv]), float(v_dirs[2, jv])
-            cr = fx * nx
-            cr += fy * ny
-            cr += fz * nz
-            if cr < min_cr:  # facing away from the camera
-                nx += (min_cr - cr) * fx
-                ny += (min_cr - cr) * fy
-                nz += (min_cr - cr) * fz
-                norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-                nx, ny, nz = nx / norm, ny / norm, nz / norm
-            n0[0, j], n0[1, j], n0[2, j] = nx, ny, nz
-
-
-@parallel_kernel
-def finish(pix, n, rho, sums, counts, normals, albedo, rms, valid):
-    """The result images (flat, zeros where not valid; as the numpy backend): a pixel is
-    valid if its normal and albedo are finite and its 3x3 J^T J is non-singular (its
-    solution is determined); ``rms`` = sqrt(r.r / counts)."""
+def finish(pix, solved, n, rho, sums, counts, normals, albedo, rms, valid):
+    """The result images (flat (H*W,), zeros where not valid): a solved pixel is valid if
+    its normal and albedo are finite and its 3x3 J^T J is non-singular (its solution is
+    determined); ``rms`` = sqrt(r.r / counts)."""
     count = pix.shape[0]
     for chunk in prange((count + CHUNK - 1) // CHUNK):
-        j0, m = _chunk_span(chunk, count)
-        for j in range(j0, j0 + m):
+        j0 = chunk * CHUNK
+        for j in range(j0, min(j0 + CHUNK, count)):
             h11, h12, h13 = float(sums[0, j]), float(sums[1, j]), float(sums[2, j])
             h22, h23, h33 = float(sums[3, j]), float(sums[4, j]), float(sums[5, j])
             det = _adjugate(h11, h12, h13, h22, h23, h33)[6]
-            ok = (det > 1e-9 * h11 * h22 * h33 and math.isfinite(n[0, j])
+            ok = (solved[j] and det > 1e-9 * h11 * h22 * h33 and math.isfinite(n[0, j])
                   and math.isfinite(n[1, j]) and math.isfinite(n[2, j])
                   and math.isfinite(rho[j]))
             if ok:
                 p = pix[j]
                 normals[p, 0], normals[p, 1], normals[p, 2] = n[0, j], n[1, j], n[2, j]
                 albedo[p] = rho[j]
-                rms[p] = math.sqrt(max(float(sums[14, j]), 0.0) / counts[j])
+                rms[p] = math.sqrt(_fmax(float(sums[14, j]), 0.0) / counts[j])
                 valid[p] = True
+
+
+# After an edit of a module whose functions the kernels inline (symmetric_solve), the
+# cached kernels are compiled anew.
 
 
 # After an edit of a module whose functions the kernels inline (symmetric_solve), the

@@ -30,6 +30,7 @@ import numpy as np
 from fingerps_recon.errors import FingerpsReconError, NoFingerError
 from fingerps_recon.photometric.finger_mask import finger_mask
 from fingerps_recon.photometric.flat_field import flat_field_gain
+from fingerps_recon.photometric.hk_solver import HKLighting, prepare_hk_lighting, solve_hk_prepared
 from fingerps_recon.photometric.lambertian import solve_lambertian
 from fingerps_recon.photometric.normal_transform import enhance_ridges
 from fingerps_recon.photometric.pixel_rays import near_light_directions_ps, view_directions_ps
@@ -69,8 +70,11 @@ class ReconstructionOptions:
     """Options of :func:`reconstruct`; defaults are the simulated rig's."""
 
     model: Model = Model.LAMBERT
-    hk_iterations: int = 5
-    """Converged on the simulated finger at 5 (bench/bench_recon_accuracy.py)."""
+    hk_iterations: int = 3
+    """Levenberg–Marquardt iterations of the HK solver. Started from the previous burst's A
+    (``reconstruct_prepared(hk_initial_scale=...)``, as recon_node and scan_node do), 3
+    reach on the simulated finger the accuracy 5 reach from the linear fit of A; a first
+    burst (no previous A) is ~0.04 deg worse at 3."""
     projection: Projection = Projection.PERSPECTIVE
     mask_threshold: float = 0.15
     shadow_fraction: float = 0.02
@@ -120,6 +124,9 @@ class PreparedCalibration:
         Distant lights with a flat field: 1 / max(p_k, min portion), the factor of Eq. 11.
     views : (3,) or (H, W, 3) float32
         Unit directions towards the camera, PS frame: orthographic or per pixel.
+    hk_lighting : HKLighting or None
+        The lights, views and intensities in the HK solver's layout
+        (:func:`photometric.hk_solver.prepare_hk_lighting`), when prepared for the HK model.
     """
 
     shape: tuple[int, int]
@@ -128,6 +135,7 @@ class PreparedCalibration:
     light_power: np.ndarray | None
     flat_gain: np.ndarray | None
     views: np.ndarray
+    hk_lighting: HKLighting | None = None
 
     @property
     def light_count(self) -> int:
@@ -186,8 +194,12 @@ def prepare_calibration(
     views = (view_directions_ps(k_matrix, (h, w))
              if options.projection is Projection.PERSPECTIVE
              else np.array([0.0, 0.0, 1.0], dtype=np.float32))
+    hk_lighting = (prepare_hk_lighting(lights, shape=(h, w), views=views,
+                                       intensities=light_power)
+                   if options.model is Model.HK else None)
     return PreparedCalibration(shape=(h, w), camera_matrix=k_matrix, lights=lights,
-                               light_power=light_power, flat_gain=flat_gain, views=views)
+                               light_power=light_power, flat_gain=flat_gain, views=views,
+                               hk_lighting=hk_lighting)
 
 
 def reconstruct(
@@ -250,9 +262,13 @@ def reconstruct_prepared(
     dark: np.ndarray | None = None,
     mask: np.ndarray | None = None,
     options: ReconstructionOptions = ReconstructionOptions(),
+    hk_initial_scale: float | None = None,
 ) -> Reconstruction:
     """Reconstruct one burst with a calibration prepared by :func:`prepare_calibration`
-    (with the same ``options``); the other parameters as :func:`reconstruct`."""
+    (with the same ``options``); the other parameters as :func:`reconstruct`.
+    ``hk_initial_scale``: where the HK fit of the global scale A starts, e.g. the A of the
+    previous burst with this calibration (``Reconstruction.hk_scale``): the fit then needs
+    fewer iterations than from the linear fit it otherwise starts from."""
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     stack = _checked_stack(images, prepared.light_count, full_scale=full_scale,
@@ -299,13 +315,14 @@ def reconstruct_prepared(
     residual = lam.relative_misfit()  # gathered by the solve over the valid pixels' usable values
     normals, albedo, hk_scale = lam.normals, lam.albedo, None
     if options.model is Model.HK:
-        from fingerps_recon.photometric.hk_solver import solve_hk
-
         t1 = time.perf_counter()
+        lighting = prepared.hk_lighting or prepare_hk_lighting(
+            lights, shape=shape, views=prepared.views, intensities=light_power)
         usable = (stack > shadow_level) & (stack < limit)
-        hk = solve_hk(stack, lights, mask=valid, init_normals=normals, init_albedo=albedo,
-                      views=prepared.views, intensities=light_power, usable=usable,
-                      iterations=options.hk_iterations)
+        hk = solve_hk_prepared(stack, lighting, mask=valid, init_normals=normals,
+                               init_albedo=albedo, usable=usable,
+                               initial_scale=hk_initial_scale,
+                               iterations=options.hk_iterations)
         normals, albedo, valid, hk_scale = hk.normals, hk.albedo, hk.valid & valid, hk.scale
         timings["hk"] = (time.perf_counter() - t1) * 1e3
     # Both solvers give float32 normals and albedo that are zero where they are not valid.

@@ -8,6 +8,7 @@ reconstructed ends in a ``FingerpsReconError``, an empty result too
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -54,7 +55,9 @@ class BurstReconstruction:
 class PreparedCalibrations:
     """The calibration prepared for the bursts' camera (``prepare_calibration``): kept while
     the light calibration, the flat field, the camera matrix, the image size, the working
-    distance and the projection stay the same; prepared again when one changes."""
+    distance, the projection and the model stay the same; prepared again when one changes.
+    With it the HK model's global scale A of the last burst (``hk_scale``), where the next
+    burst's fit of A starts (A depends on the skin and the LEDs' power, not on the pose)."""
 
     def __init__(self) -> None:
         self._key: tuple | None = None
@@ -62,13 +65,14 @@ class PreparedCalibrations:
         self._prepared: PreparedCalibration | None = None
         self.count = 0  # calibrations prepared so far
         self.seconds = 0.0  # time the last preparation took
+        self.hk_scale: float | None = None  # the HK model's A of the last burst
 
     def get(self, lights: LightCalibration, flat_maps: np.ndarray | None,
             camera_matrix: np.ndarray, shape: tuple[int, int],
             options: ReconstructionOptions) -> PreparedCalibration:
         """The prepared calibration for these inputs, prepared now if they changed."""
         key = (id(lights), id(flat_maps), camera_matrix.tobytes(), tuple(shape),
-               options.working_distance_m, options.projection)
+               options.working_distance_m, options.projection, options.model)
         if key != self._key or self._prepared is None:
             start = time.perf_counter()
             directions, intensities, leds = calibration_arrays(lights)
@@ -77,6 +81,7 @@ class PreparedCalibrations:
                 intensities=intensities, portions=flat_maps, led_positions_optical=leds,
                 options=options)
             self._key, self._held = key, (lights, flat_maps)
+            self.hk_scale = None
             self.count += 1
             self.seconds = time.perf_counter() - start
         return self._prepared
@@ -102,7 +107,10 @@ def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndar
     count = cache.count
     calibration = cache.get(lights, maps, inputs.camera_matrix, images.shape[1:], options)
     result = reconstruct_prepared(images, calibration, full_scale=inputs.full_scale,
-                                  dark=inputs.dark, options=options)
+                                  dark=inputs.dark, options=options,
+                                  hk_initial_scale=cache.hk_scale)
+    if result.hk_scale is not None and math.isfinite(result.hk_scale):
+        cache.hk_scale = result.hk_scale  # where the next burst's fit of A starts
     if cache.count != count:  # prepared for this burst: say what it cost
         result.timings_ms["calibration"] = cache.seconds * 1e3
     result.timings_ms["total"] = (time.perf_counter() - start) * 1e3
