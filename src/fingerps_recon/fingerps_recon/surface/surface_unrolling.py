@@ -47,7 +47,6 @@ from functools import cached_property
 import cv2
 import numpy as np
 import scipy.linalg
-import scipy.ndimage
 
 from fingerps_recon.errors import UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
@@ -293,7 +292,9 @@ def unroll_surface(
     SurfaceUnrolling
     """
     k = checked_camera_matrix(camera_matrix)
-    depth = np.asarray(depth_m, dtype=np.float64)
+    depth = np.asarray(depth_m)
+    if not np.issubdtype(depth.dtype, np.floating):
+        depth = depth.astype(np.float64)
     if depth.ndim != 2 or np.shape(mask) != depth.shape:
         raise UnrollingError(f"depth {depth.shape} and mask {np.shape(mask)} must be the same "
                              "(H, W) shape")
@@ -304,7 +305,7 @@ def unroll_surface(
             or fit_order not in (1, 2)):
         raise UnrollingError("spacing_mm must be > 0, smoothing_nodes >= 0, 0 < min_fill <= 1 "
                              "and fit_order 1 or 2")
-    z_ref_mm = 1e3 * float(np.median(depth[valid][::7]))
+    z_ref_mm = 1e3 * float(np.median(depth[valid][::7].astype(np.float64)))
     pixel_mm = z_ref_mm / k[0, 0]
     step = max(2, round(spacing_mm / pixel_mm))
 
@@ -351,7 +352,15 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     Moments of each block about its own centre (coordinates in blocks) are computed once;
     a neighbour block's moments about the target node's centre follow by the binomial
     shift sum_p C(k, p) a^(k - p) S_p, so the whole fit is a few dozen small correlations
-    of the (gh, gw) moment grids and one small solve per node."""
+    of the (gh, gw) moment grids and one small solve per node. Only the blocks of the box
+    of ``valid`` are fitted (the others hold no surface)."""
+    full_shape = (-(-depth.shape[0] // step), -(-depth.shape[1] // step))
+    rows = np.flatnonzero(valid.any(axis=1))
+    cols = np.flatnonzero(valid.any(axis=0))
+    br, bc = rows[0] // step, cols[0] // step
+    box = (slice(br * step, (rows[-1] // step + 1) * step),
+           slice(bc * step, (cols[-1] // step + 1) * step))
+    depth, valid = depth[box].astype(np.float64), valid[box]
     h, w = depth.shape
     gh, gw = -(-h // step), -(-w // step)
     m = np.zeros((gh * step, gw * step))
@@ -398,11 +407,13 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     good = np.linalg.eigvalsh(norm)[:, 0] > _MIN_FIT_CONDITION
     sol = np.zeros_like(rhs)
     sol[good] = np.linalg.solve(mat[good], rhs[good][..., None])[..., 0]
-    out = np.zeros((gh, gw))
-    out[node_valid] = sol[:, 0]
+    out = np.zeros(full_shape)
+    out[br:br + gh, bc:bc + gw][node_valid] = sol[:, 0]
     idx = np.flatnonzero(node_valid)
     node_valid.reshape(-1)[idx[~good]] = False
-    return node_valid, out
+    full_valid = np.zeros(full_shape, dtype=bool)
+    full_valid[br:br + gh, bc:bc + gw] = node_valid
+    return full_valid, out
 
 
 def _block_moments(x: np.ndarray, powers: np.ndarray, gh: int, gw: int,
@@ -531,45 +542,43 @@ def _rigid_to_image(xy: np.ndarray, image_mm: np.ndarray, apex: int) -> np.ndarr
 def _extended_grid(xy: np.ndarray, node_valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """See ``SurfaceUnrolling._extended``."""
     gh, gw = node_valid.shape[0] + 2, node_valid.shape[1] + 2
-    grid = np.zeros((gh, gw, 2))
-    weight = np.zeros((gh, gw))
-    grid[1:-1, 1:-1][node_valid] = xy
-    weight[1:-1, 1:-1] = node_valid
-    kern = np.ones((3, 3))
+    # Two more empty nodes on every side, so that the neighbours two steps away of every
+    # grid node are array slices (they hold no node beyond the grid).
+    pad = 2
+    grid = np.zeros((gh + 2 * pad, gw + 2 * pad, 2))
+    weight = np.zeros((gh + 2 * pad, gw + 2 * pad))
+    inner = (slice(pad + 1, pad + gh - 1), slice(pad + 1, pad + gw - 1))
+    grid[inner][node_valid] = xy
+    weight[inner] = node_valid
+    core = (slice(pad, pad + gh), slice(pad, pad + gw))
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+
+    def shifted(a: np.ndarray, dr: int, dc: int) -> np.ndarray:
+        """a at the node (r - dr, c - dc) of each grid node (r, c)."""
+        return a[pad - dr:pad - dr + gh, pad - dc:pad - dc + gw]
+
     for _ in range(2):  # extrapolate one ring of nodes at a time (linear from two back)
-        grown = scipy.ndimage.binary_dilation(weight > 0)
-        new = grown & (weight == 0)
+        has = (weight > 0).astype(np.uint8)
+        new = (cv2.dilate(has, cross)[core] > 0) & (weight[core] == 0)
         if not new.any():
             break
         # Linear extrapolation along each axis where possible, else the neighbours' mean.
-        acc = np.zeros_like(grid)
+        acc = np.zeros((gh, gw, 2))
         cnt = np.zeros((gh, gw))
         for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-            n1 = np.roll(weight, (dr, dc), (0, 1)) > 0
-            n2 = np.roll(weight, (2 * dr, 2 * dc), (0, 1)) > 0
-            ok = new & n1 & n2 & _in_range((gh, gw), dr, dc, 2)
-            g1 = np.roll(grid, (dr, dc), (0, 1))
-            g2 = np.roll(grid, (2 * dr, 2 * dc), (0, 1))
-            acc[ok] += 2 * g1[ok] - g2[ok]
+            ok = new & (shifted(weight, dr, dc) > 0) & (shifted(weight, 2 * dr, 2 * dc) > 0)
+            acc[ok] += 2 * shifted(grid, dr, dc)[ok] - shifted(grid, 2 * dr, 2 * dc)[ok]
             cnt[ok] += 1
         fallback = new & (cnt == 0)
         if fallback.any():
-            s = np.stack([scipy.ndimage.correlate(grid[..., c] * weight, kern, mode="constant")
-                          for c in range(2)], -1)
-            wsum = scipy.ndimage.correlate(weight, kern, mode="constant")
-            acc[fallback] = s[fallback] / wsum[fallback][:, None]
+            wsum = cv2.boxFilter(weight, -1, (3, 3), normalize=False,
+                                 borderType=cv2.BORDER_CONSTANT)[core]
+            total = cv2.boxFilter(grid * weight[..., None], -1, (3, 3), normalize=False,
+                                  borderType=cv2.BORDER_CONSTANT)[core]
+            acc[fallback] = total[fallback] / wsum[fallback][:, None]
             cnt[fallback] = 1
-        grid[new] = acc[new] / cnt[new][:, None]
-        weight[new] = 1.0
-    filled = weight > 0
+        grid[core][new] = acc[new] / cnt[new][:, None]
+        weight[core][new] = 1.0
+    grid, filled = grid[core].copy(), weight[core] > 0
     grid[~filled] = np.nan
     return grid, filled
-
-
-def _in_range(shape: tuple[int, int], dr: int, dc: int, times: int) -> np.ndarray:
-    """Nodes whose neighbours ``times`` steps of (dr, dc) back lie inside the grid (rolled
-    arrays wrap around; this masks the wrapped ones)."""
-    gh, gw = shape
-    r, c = np.mgrid[0:gh, 0:gw]
-    return ((r - times * dr >= 0) & (r - times * dr < gh)
-            & (c - times * dc >= 0) & (c - times * dc < gw))
