@@ -317,19 +317,23 @@ def _ridge_signal(depth: np.ndarray, valid: np.ndarray, k: np.ndarray,
         return np.where(valid, relief, 0.0).astype(np.float32), origin
     n = np.asarray(normals_ps, dtype=np.float32)[box]
     nz = np.maximum(n[..., 2], _MIN_NZ)
-    p = -n[..., 0] / nz   # dh/dx, x right
-    q = -n[..., 1] / nz   # dh/dy, y up
+    # Minus the slopes: -p = -dh/dx (x right), -q = -dh/dy (y up).
+    minus_p = n[..., 0] / nz
+    minus_q = n[..., 1] / nz
     # Metric pixel size z / f: one depth for all pixels (the finger's depth varies by a few
     # per cent, and the local normalisation removes the overall scale); fx and fy may differ.
     z_mm = 1e3 * float(np.median(depth[valid][::7]))
     dx_mm, dy_mm = z_mm / k[0, 0], z_mm / k[1, 1]
-    lap = np.zeros_like(p)
-    # div(p, q) = dp/dx + dq/dy; image rows run down, so dq/dy = -dq/drow.
-    lap[1:-1, 1:-1] = ((p[1:-1, 2:] - p[1:-1, :-2]) * np.float32(0.5 / dx_mm)
-                       - (q[2:, 1:-1] - q[:-2, 1:-1]) * np.float32(0.5 / dy_mm))
+    # -div(p, q) = -dp/dx - dq/dy by central differences; image rows run down, so dq/dy =
+    # -dq/drow. Undefined on the box's outer ring (0 there).
+    kernel = np.array([[-0.5, 0.0, 0.5]], dtype=np.float32)
+    lap = (cv2.filter2D(minus_p, -1, kernel / np.float32(dx_mm))
+           - cv2.filter2D(minus_q, -1, kernel.T / np.float32(dy_mm)))
+    lap[[0, -1], :] = 0.0
+    lap[:, [0, -1]] = 0.0
     inner = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     valid &= inner
-    return np.where(valid, -lap, np.float32(0.0)), origin
+    return np.where(valid, lap, np.float32(0.0)), origin
 
 
 def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
@@ -361,17 +365,20 @@ def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
     core = cv2.erode(inside.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     gx *= core
     gy *= core
-    gxx, gyy, gxy = (half.smooth(g, sn) for g in (gx * gx, gy * gy, gx * gy))
+    # At half resolution: the mean coherence over the core needs no finer sampling.
+    gxx, gyy, gxy = (half.smooth(g, sn, up=False) for g in (gx * gx, gy * gy, gx * gy))
     coherence = np.sqrt((gxx - gyy) ** 2 + 4 * gxy * gxy) / np.maximum(gxx + gyy, 1e-12)
+    core_half = half.down(core.astype(np.float32)) > 0.999  # all four pixels in the core
 
     if options.gabor:
         # Across the ridges: the direction of the structure tensor's main eigenvector.
+        gxx, gyy, gxy = (half.up(t) for t in (gxx, gyy, gxy))
         across = 0.5 * np.arctan2(2 * gxy, gxx - gyy)
         norm = _gabor(np.where(inside, norm, 0.0).astype(np.float32), inside, across,
                       options.gabor_period_mm * ppmm)
     grey = np.clip(127.5 * (1.0 - 0.5 * norm), 0.0, 255.0)
     image = np.where(inside, np.rint(grey), 255.0).astype(np.uint8)
-    return image, float(coherence[core].mean()) if core.any() else 0.0
+    return image, float(coherence[core_half].mean()) if core_half.any() else 0.0
 
 
 class _HalfScale:
@@ -386,27 +393,32 @@ class _HalfScale:
         h, wd = w.shape
         self._pad = (h % 2, wd % 2)  # even sizes: half-resolution pixel i covers 2i, 2i+1
         self.w = w
-        self.w_half = self._down(w)
+        self.w_half = self.down(w)
         self._den: dict[float, np.ndarray] = {}
 
-    def _down(self, x: np.ndarray) -> np.ndarray:
+    def down(self, x: np.ndarray) -> np.ndarray:
+        """2x2 means of ``x`` (zero-padded to even sizes)."""
         if any(self._pad):
             x = cv2.copyMakeBorder(x, 0, self._pad[0], 0, self._pad[1], cv2.BORDER_CONSTANT)
         return cv2.resize(x, (x.shape[1] // 2, x.shape[0] // 2), interpolation=cv2.INTER_AREA)
 
-    def smooth(self, x: np.ndarray, sigma_px: float) -> np.ndarray:
-        """(H, W) float32 normalized blur of ``x`` (sigma in full-resolution px)."""
+    def up(self, x: np.ndarray) -> np.ndarray:
+        """Bilinear interpolation of a half-resolution ``x`` at the full-resolution pixels."""
+        h, wd = self.shape
+        return cv2.resize(x, (x.shape[1] * 2, x.shape[0] * 2),
+                          interpolation=cv2.INTER_LINEAR)[:h, :wd]
+
+    def smooth(self, x: np.ndarray, sigma_px: float, *, up: bool = True) -> np.ndarray:
+        """(H, W) float32 normalized blur of ``x`` (sigma in full-resolution px); at half
+        resolution if not ``up``."""
         sigma = 0.5 * math.sqrt(max(sigma_px * sigma_px - 1.0, 0.25))
         if sigma not in self._den:
             self._den[sigma] = np.maximum(cv2.GaussianBlur(
                 self.w_half, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT), 1e-6)
-        ratio = cv2.GaussianBlur(self._down(x * self.w), (0, 0), sigma,
+        ratio = cv2.GaussianBlur(self.down(x * self.w), (0, 0), sigma,
                                  borderType=cv2.BORDER_CONSTANT)
         ratio /= self._den[sigma]
-        h, wd = self.shape
-        up = cv2.resize(ratio, (ratio.shape[1] * 2, ratio.shape[0] * 2),
-                        interpolation=cv2.INTER_LINEAR)
-        return up[:h, :wd]
+        return self.up(ratio) if up else ratio
 
 
 def _gabor(x: np.ndarray, inside: np.ndarray, across: np.ndarray, period_px: float,
