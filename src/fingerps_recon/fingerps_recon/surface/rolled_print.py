@@ -58,6 +58,7 @@ import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError, RolledPrintError, UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
+from fingerps_recon.surface import print_kernel
 from fingerps_recon.surface.surface_unrolling import SurfaceUnrolling, unroll_surface
 
 MM_PER_INCH = 25.4
@@ -315,25 +316,17 @@ def _ridge_signal(depth: np.ndarray, valid: np.ndarray, k: np.ndarray,
             relief = 1e3 * np.asarray(height_m, dtype=np.float32)[box]
         valid &= np.isfinite(relief)
         return np.where(valid, relief, 0.0).astype(np.float32), origin
-    n = np.asarray(normals_ps, dtype=np.float32)[box]
-    nz = np.maximum(n[..., 2], _MIN_NZ)
-    # Minus the slopes: -p = -dh/dx (x right), -q = -dh/dy (y up).
-    minus_p = n[..., 0] / nz
-    minus_q = n[..., 1] / nz
     # Metric pixel size z / f: one depth for all pixels (the finger's depth varies by a few
     # per cent, and the local normalisation removes the overall scale); fx and fy may differ.
     z_mm = 1e3 * float(np.median(depth[valid][::7]))
     dx_mm, dy_mm = z_mm / k[0, 0], z_mm / k[1, 1]
-    # -div(p, q) = -dp/dx - dq/dy by central differences; image rows run down, so dq/dy =
-    # -dq/drow. Undefined on the box's outer ring (0 there).
-    kernel = np.array([[-0.5, 0.0, 0.5]], dtype=np.float32)
-    lap = (cv2.filter2D(minus_p, -1, kernel / np.float32(dx_mm))
-           - cv2.filter2D(minus_q, -1, kernel.T / np.float32(dy_mm)))
-    lap[[0, -1], :] = 0.0
-    lap[:, [0, -1]] = 0.0
-    inner = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    valid &= inner
-    return np.where(valid, lap, np.float32(0.0)), origin
+    signal = np.empty(valid.shape, dtype=np.float32)
+    keep = np.empty(valid.shape, dtype=bool)
+    print_kernel.ridge_laplacian(np.asarray(normals_ps, dtype=np.float32)[box], valid,
+                                 np.float32(_MIN_NZ), np.float32(0.5 / dx_mm),
+                                 np.float32(0.5 / dy_mm), signal, keep)
+    valid &= keep
+    return signal, origin
 
 
 def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
@@ -384,9 +377,10 @@ def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
 class _HalfScale:
     """Normalized Gaussian convolution within the weights ``w`` (Knutsson & Westin 1993:
     blur(x w) / blur(w)) computed at half resolution: 2x2 means down, the Gaussian, bilinear
-    up. The box and the tent add 1/3 and 2/3 px^2 of variance, so the Gaussian's is sigma^2
-    - 1 (full-resolution pixels); for sigma >= ~5 px (0.25 mm at 500 ppi) the result
-    differs from the full-resolution one by well under 1 % of the signal."""
+    up. The means and the interpolation add 1/4 and 3/4 px^2 of variance, so the Gaussian's
+    is sigma^2 - 1 (full-resolution pixels). Meant for sigma >= ~5 px (0.25 mm at 500 ppi):
+    on prints of the simulated rig the grey levels then stay within 3 of those smoothed at
+    full resolution."""
 
     def __init__(self, w: np.ndarray) -> None:
         self.shape = w.shape

@@ -50,6 +50,7 @@ import scipy.linalg
 
 from fingerps_recon.errors import UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
+from fingerps_recon.surface import print_kernel
 
 # Neighbour offsets (rows, cols) of the springs: right, down, down-right, down-left.
 _SPRINGS = ((0, 1), (1, 0), (1, 1), (1, -1))
@@ -59,9 +60,6 @@ _STEP_TOLERANCE_MM = 5e-3
 # ... or the relative decrease of the cost below this.
 _COST_TOLERANCE = 1e-4
 _LAMBDA_START = 1e-4
-# Triangles spanning more grid cells than this are left out of the inverse map (a mesh
-# cell is ~2-5 cells of the coarse print grid).
-_MAX_TRIANGLE_CELLS = 64
 # Smallest eigenvalue of a node's normalised local-fit system (a sliver is left out).
 _MIN_FIT_CONDITION = 1e-4
 
@@ -207,43 +205,13 @@ def _rasterise(xy: np.ndarray, values: np.ndarray, triangles: np.ndarray, *,
                origin: tuple[float, float], pitch: tuple[float, float],
                shape: tuple[int, int]) -> np.ndarray:
     """(h, w, 2) float32 barycentric interpolation of ``values`` (N, 2) over ``triangles``
-    of the points ``xy`` (N, 2), sampled at origin + (col, row) * pitch; NaN off them.
-
-    Every triangle is tested against the grid points of its bounding box at once (a
-    fixed k x k window per triangle, k the largest box)."""
-    h, w = shape
-    out = np.full((h, w, 2), np.nan, dtype=np.float32)
-    g = (xy - np.asarray(origin)) / np.asarray(pitch)  # node positions in grid units
-    p = g[triangles]  # (T, 3, 2)
-    lo = np.floor(p.min(axis=1)).astype(np.int64) + 1
-    hi = np.floor(p.max(axis=1)).astype(np.int64)
-    sane = (hi - lo).max(axis=1) < _MAX_TRIANGLE_CELLS  # a fold's sliver would cost k^2
-    p, lo, hi, triangles = p[sane], lo[sane], hi[sane], triangles[sane]
-    k = int(max(1, (hi - lo).max() + 1)) if len(triangles) else 0
-    if k == 0:
-        return out
-    off = np.arange(k)
-    cx = lo[:, 0, None, None] + off[None, None, :]  # (T, 1, k)
-    cy = lo[:, 1, None, None] + off[None, :, None]  # (T, k, 1)
-    # Barycentric coordinates of (cx, cy) in each triangle.
-    a, b, c = p[:, 0], p[:, 1], p[:, 2]
-    v0, v1 = b - a, c - a
-    den = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
-    good = np.abs(den) > 1e-12
-    den = np.where(good, den, 1.0)[:, None, None]
-    px = cx - a[:, 0, None, None]
-    py = cy - a[:, 1, None, None]
-    l1 = (px * v1[:, 1, None, None] - py * v1[:, 0, None, None]) / den
-    l2 = (v0[:, 0, None, None] * py - v0[:, 1, None, None] * px) / den
-    l0 = 1.0 - l1 - l2
-    eps = 1e-9
-    hit = ((l0 >= -eps) & (l1 >= -eps) & (l2 >= -eps) & good[:, None, None]
-           & (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h))
-    t, iy, ix = np.nonzero(hit)
-    val = values[triangles[t]]  # (M, 3, 2)
-    bary = np.stack([l0[t, iy, ix], l1[t, iy, ix], l2[t, iy, ix]], axis=1)
-    out[np.broadcast_to(cy, hit.shape)[t, iy, ix], np.broadcast_to(cx, hit.shape)[t, iy, ix]] = (
-        np.einsum("mk,mkc->mc", bary, val))
+    of the points ``xy`` (N, 2), sampled at origin + (col, row) * pitch; NaN off them
+    (:func:`fingerps_recon.surface.print_kernel.rasterise`)."""
+    out = np.full((*shape, 2), np.nan, dtype=np.float32)
+    grid_xy = (np.asarray(xy, dtype=np.float64) - np.asarray(origin)) / np.asarray(pitch)
+    print_kernel.rasterise(np.ascontiguousarray(grid_xy),
+                           np.ascontiguousarray(values, dtype=np.float64),
+                           np.ascontiguousarray(triangles, dtype=np.int64), out)
     return out
 
 

@@ -1,0 +1,122 @@
+"""Compiled (numba) loops of the rolled print (:mod:`surface.rolled_print`,
+:mod:`surface.surface_unrolling`).
+
+- :func:`ridge_laplacian`: minus the divergence of the normals' slope field by central
+  differences, and the pixels whose 3x3 neighbourhood is valid, in one pass over the
+  finger's box (numpy needs a dozen passes and temporaries for the same).
+- :func:`rasterise`: barycentric interpolation of per-node values over a triangle mesh at
+  the points of a regular grid, triangle by triangle over its bounding box.
+
+Both run on the calling thread (``serial_kernel``): a print is a few milliseconds of work,
+and a loaded machine would keep helper threads waiting. Compiled and cached as the
+photometric kernels are (:mod:`photometric.kernel_compile`), warmed up with them
+(:func:`warm_up`, called by :mod:`photometric.kernel_warm_up`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fingerps_recon.photometric.kernel_compile import (
+    drop_stale_caches,
+    inline_kernel,
+    serial_kernel,
+)
+
+# Barycentric coordinates down to -EPS count as inside (points on shared edges).
+_EPS = 1e-9
+# Triangles whose bounding box spans this many grid cells or more are left out of the
+# inverse map (a mesh cell is ~2-5 cells of the coarse print grid; a fold's sliver would
+# cost its box's area).
+MAX_TRIANGLE_CELLS = 64
+
+
+@inline_kernel
+def _clamped(nz: float, min_nz: float) -> float:
+    """max(nz, min_nz), NaN kept (as np.maximum)."""
+    return min_nz if nz < min_nz else nz
+
+
+@serial_kernel
+def ridge_laplacian(normals: np.ndarray, valid: np.ndarray, min_nz: float, scale_x: float,
+                    scale_y: float, signal: np.ndarray, keep: np.ndarray) -> None:
+    """Ridge signal of the normals ``normals`` (h, w, 3) float32, PS frame (x right, y up):
+    ``signal`` (h, w) float32 = -div(p, q) with p = -nx / nz, q = -ny / nz (nz clamped to
+    ``min_nz``) by central differences, scaled by ``scale_x`` = 1 / (2 dx) and ``scale_y`` =
+    1 / (2 dy) (image rows run down: dq/dy = -dq/drow); 0 on the outer ring and where
+    ``keep`` is False. ``keep`` (h, w) bool: ``valid`` and its 8 neighbours inside the array
+    valid (a 3x3 erosion, the array's outside counting as valid)."""
+    h, w = valid.shape
+    for r in range(h):
+        for c in range(w):
+            ok = valid[r, c]
+            if ok:
+                for rr in range(max(r - 1, 0), min(r + 2, h)):
+                    for cc in range(max(c - 1, 0), min(c + 2, w)):
+                        ok = ok and valid[rr, cc]
+            keep[r, c] = ok
+            value = np.float32(0.0)
+            if ok and 0 < r < h - 1 and 0 < c < w - 1:
+                right = normals[r, c + 1, 0] / _clamped(normals[r, c + 1, 2], min_nz)
+                left = normals[r, c - 1, 0] / _clamped(normals[r, c - 1, 2], min_nz)
+                down = normals[r + 1, c, 1] / _clamped(normals[r + 1, c, 2], min_nz)
+                up = normals[r - 1, c, 1] / _clamped(normals[r - 1, c, 2], min_nz)
+                value = np.float32((right - left) * scale_x - (down - up) * scale_y)
+            signal[r, c] = value
+
+
+@serial_kernel
+def rasterise(grid_xy: np.ndarray, values: np.ndarray, triangles: np.ndarray,
+              out: np.ndarray) -> None:
+    """Barycentric interpolation of ``values`` (N, 2) float64 over ``triangles`` (T, 3) of
+    the points ``grid_xy`` (N, 2) float64 (node positions in grid units: column, row) at
+    the grid points of ``out`` (h, w, 2) float32, which keeps its values elsewhere. A grid
+    point covered by several triangles (a shared edge) takes the last one's value."""
+    h, w = out.shape[0], out.shape[1]
+    for t in range(triangles.shape[0]):
+        i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        ax, ay = grid_xy[i0, 0], grid_xy[i0, 1]
+        bx, by = grid_xy[i1, 0], grid_xy[i1, 1]
+        cx, cy = grid_xy[i2, 0], grid_xy[i2, 1]
+        c_lo = math.floor(min(ax, bx, cx)) + 1
+        c_hi = math.floor(max(ax, bx, cx))
+        r_lo = math.floor(min(ay, by, cy)) + 1
+        r_hi = math.floor(max(ay, by, cy))
+        if max(c_hi - c_lo, r_hi - r_lo) >= MAX_TRIANGLE_CELLS:
+            continue
+        v0x, v0y, v1x, v1y = bx - ax, by - ay, cx - ax, cy - ay
+        den = v0x * v1y - v0y * v1x
+        if not abs(den) > 1e-12:
+            continue
+        for row in range(max(r_lo, 0), min(r_hi + 1, h)):
+            py = row - ay
+            for col in range(max(c_lo, 0), min(c_hi + 1, w)):
+                px = col - ax
+                l1 = (px * v1y - py * v1x) / den
+                l2 = (v0x * py - v0y * px) / den
+                l0 = 1.0 - l1 - l2
+                if l0 >= -_EPS and l1 >= -_EPS and l2 >= -_EPS:
+                    for k in range(2):
+                        out[row, col, k] = (l0 * values[i0, k] + l1 * values[i1, k]
+                                            + l2 * values[i2, k])
+
+
+def warm_up() -> None:
+    """Compile (or load) the kernels for the dtypes :mod:`surface.rolled_print` gives them."""
+    normals = np.zeros((5, 5, 3), dtype=np.float32)
+    normals[..., 2] = 1.0
+    valid = np.ones((5, 5), dtype=bool)
+    # The finger's box of the image (a strided view) or all of it (contiguous).
+    for box in ((slice(0, 4), slice(0, 4)), (slice(0, 5), slice(0, 5))):
+        shape = valid[box].shape
+        ridge_laplacian(normals[box], valid[box], np.float32(0.1), np.float32(1.0),
+                        np.float32(1.0), np.empty(shape, dtype=np.float32),
+                        np.empty(shape, dtype=bool))
+    xy = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 3.0]])
+    rasterise(xy, xy.copy(), np.array([[0, 1, 2]], dtype=np.int64),
+              np.full((4, 4, 2), np.nan, dtype=np.float32))
+
+
+drop_stale_caches(globals())
