@@ -47,24 +47,46 @@ def ridge_laplacian(normals: np.ndarray, valid: np.ndarray, min_nz: float, scale
     ``min_nz``) by central differences, scaled by ``scale_x`` = 1 / (2 dx) and ``scale_y`` =
     1 / (2 dy) (image rows run down: dq/dy = -dq/drow); 0 on the outer ring and where
     ``keep`` is False. ``keep`` (h, w) bool: ``valid`` and its 8 neighbours inside the array
-    valid (a 3x3 erosion, the array's outside counting as valid)."""
+    valid (a 3x3 erosion, the array's outside counting as valid).
+
+    Two passes: -p of every pixel; then row by row, -q and the erosion along the row of the
+    next row (three rows kept), the erosion along the column and the differences."""
     h, w = valid.shape
+    minus_q = np.empty((3, w), dtype=np.float32)  # rows r - 1, r, r + 1 (cyclic)
+    across = np.empty((3, w), dtype=np.bool_)     # valid eroded along the row, same rows
+    minus_p = np.empty((h, w), dtype=np.float32)
     for r in range(h):
         for c in range(w):
-            ok = valid[r, c]
-            if ok:
-                for rr in range(max(r - 1, 0), min(r + 2, h)):
-                    for cc in range(max(c - 1, 0), min(c + 2, w)):
-                        ok = ok and valid[rr, cc]
+            nz = _clamped(normals[r, c, 2], min_nz)
+            minus_p[r, c] = normals[r, c, 0] / nz
+    for r in range(min(h, 1)):
+        _row_prepare(normals, valid, r, min_nz, minus_q[r % 3], across[r % 3])
+    for r in range(h):
+        if r + 1 < h:
+            _row_prepare(normals, valid, r + 1, min_nz, minus_q[(r + 1) % 3],
+                         across[(r + 1) % 3])
+        above, here, below = across[(r - 1) % 3], across[r % 3], across[(r + 1) % 3]
+        inner_row = 0 < r < h - 1
+        for c in range(w):
+            ok = here[c] and (r == 0 or above[c]) and (r == h - 1 or below[c])
             keep[r, c] = ok
             value = np.float32(0.0)
-            if ok and 0 < r < h - 1 and 0 < c < w - 1:
-                right = normals[r, c + 1, 0] / _clamped(normals[r, c + 1, 2], min_nz)
-                left = normals[r, c - 1, 0] / _clamped(normals[r, c - 1, 2], min_nz)
-                down = normals[r + 1, c, 1] / _clamped(normals[r + 1, c, 2], min_nz)
-                up = normals[r - 1, c, 1] / _clamped(normals[r - 1, c, 2], min_nz)
-                value = np.float32((right - left) * scale_x - (down - up) * scale_y)
+            if ok and inner_row and 0 < c < w - 1:
+                value = np.float32((minus_p[r, c + 1] - minus_p[r, c - 1]) * scale_x
+                                   - (minus_q[(r + 1) % 3, c] - minus_q[(r - 1) % 3, c])
+                                   * scale_y)
             signal[r, c] = value
+
+
+@inline_kernel
+def _row_prepare(normals: np.ndarray, valid: np.ndarray, r: int, min_nz: float,
+                 minus_q: np.ndarray, across: np.ndarray) -> None:
+    """Row ``r``'s -q and its validity eroded along the row (3 pixels)."""
+    w = valid.shape[1]
+    for c in range(w):
+        minus_q[c] = normals[r, c, 1] / _clamped(normals[r, c, 2], min_nz)
+        across[c] = (valid[r, c] and (c == 0 or valid[r, c - 1])
+                     and (c == w - 1 or valid[r, c + 1]))
 
 
 @serial_kernel
