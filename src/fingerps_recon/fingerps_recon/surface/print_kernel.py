@@ -6,11 +6,13 @@
   finger's box (numpy needs a dozen passes and temporaries for the same).
 - :func:`rasterise`: barycentric interpolation of per-node values over a triangle mesh at
   the points of a regular grid, triangle by triangle over its bounding box.
+- :func:`block_moments`: the per-block moments of the unrolling's local depth fit, in one
+  pass over the surface's box (no padded float64 copies of the image).
 
-Both run on the calling thread (``serial_kernel``): a print is a few milliseconds of work,
-and a loaded machine would keep helper threads waiting. Compiled and cached as the
-photometric kernels are (:mod:`photometric.kernel_compile`), warmed up with them
-(:func:`warm_up`, called by :mod:`photometric.kernel_warm_up`).
+All run on the calling thread (``serial_kernel``): a print is a few milliseconds of work,
+and on a loaded machine helper threads (a multithreaded BLAS's) keep the caller waiting.
+Compiled and cached as the photometric kernels are (:mod:`photometric.kernel_compile`),
+warmed up with them (:func:`warm_up`, called by :mod:`photometric.kernel_warm_up`).
 """
 
 from __future__ import annotations
@@ -125,6 +127,44 @@ def rasterise(grid_xy: np.ndarray, values: np.ndarray, triangles: np.ndarray,
                                             + l2 * values[i2, k])
 
 
+@serial_kernel
+def block_moments(depth: np.ndarray, valid: np.ndarray, z_ref_mm: float, powers: np.ndarray,
+                  z_terms: int, mom: np.ndarray, zmom: np.ndarray) -> None:
+    """Per block of ``step`` x ``step`` pixels (``step`` = len(powers)): ``mom[i, j, k, l]``
+    = sum over the block's valid pixels of du^k dv^l, ``zmom[i, j, k, l]`` (k, l <
+    ``z_terms``) the same of (1e3 depth - ``z_ref_mm``) du^k dv^l; du, dv the pixel's
+    offsets from the block's centre along columns and rows (``powers[o, k]`` = offset o to
+    the k). ``mom`` and ``zmom`` (gh, gw, P, P) float64 are zeroed first; pixels beyond the
+    image count as invalid. Row by row: the sums along each block's part of the row, then
+    their products with the row's powers."""
+    h, w = valid.shape
+    step, n = powers.shape
+    gh, gw = mom.shape[0], mom.shape[1]
+    mom[:] = 0.0
+    zmom[:] = 0.0
+    along = np.empty((gw, n))
+    z_along = np.empty((gw, z_terms))
+    for r in range(min(h, gh * step)):
+        along[:] = 0.0
+        z_along[:] = 0.0
+        for c in range(min(w, gw * step)):
+            if valid[r, c]:
+                b, o = c // step, c % step
+                z = 1e3 * np.float64(depth[r, c]) - z_ref_mm
+                for k in range(n):
+                    along[b, k] += powers[o, k]
+                for k in range(z_terms):
+                    z_along[b, k] += z * powers[o, k]
+        i, o = r // step, r % step
+        for b in range(gw):
+            for k in range(n):
+                for el in range(n):
+                    mom[i, b, k, el] += along[b, k] * powers[o, el]
+            for k in range(z_terms):
+                for el in range(z_terms):
+                    zmom[i, b, k, el] += z_along[b, k] * powers[o, el]
+
+
 def warm_up() -> None:
     """Compile (or load) the kernels for the dtypes :mod:`surface.rolled_print` gives them."""
     normals = np.zeros((5, 5, 3), dtype=np.float32)
@@ -136,6 +176,11 @@ def warm_up() -> None:
         ridge_laplacian(normals[box], valid[box], np.float32(0.1), np.float32(1.0),
                         np.float32(1.0), np.empty(shape, dtype=np.float32),
                         np.empty(shape, dtype=bool))
+    depth = np.full((6, 6), 0.1, dtype=np.float32)
+    powers = np.ones((3, 5))
+    for box in ((slice(0, 4), slice(0, 5)), (slice(0, 6), slice(0, 6))):
+        block_moments(depth[box], np.ones((6, 6), dtype=bool)[box], 100.0, powers, 3,
+                      np.empty((2, 2, 5, 5)), np.empty((2, 2, 3, 3)))
     xy = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 3.0]])
     rasterise(xy, xy.copy(), np.array([[0, 1, 2]], dtype=np.int64),
               np.full((4, 4, 2), np.nan, dtype=np.float32))

@@ -328,18 +328,16 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     br, bc = rows[0] // step, cols[0] // step
     box = (slice(br * step, (rows[-1] // step + 1) * step),
            slice(bc * step, (cols[-1] // step + 1) * step))
-    depth, valid = depth[box].astype(np.float64), valid[box]
+    depth, valid = depth[box], valid[box]
     h, w = depth.shape
     gh, gw = -(-h // step), -(-w // step)
-    m = np.zeros((gh * step, gw * step))
-    m[:h, :w] = valid
-    z = np.zeros_like(m)
-    z[:h, :w] = np.where(valid, 1e3 * depth - z_ref_mm, 0.0)
     d = (np.arange(step) - (step - 1) / 2.0) / step  # offset in blocks within a block
     powers = d[:, None] ** np.arange(2 * order + 1)  # (s, 2 order + 1)
-    # mom[i, j, k, l] = sum over block (i, j) of m du^k dv^l (du along columns, dv rows)
-    mom = _block_moments(m, powers, gh, gw, step)
-    zmom = _block_moments(z, powers[:, :order + 1], gh, gw, step)
+    # mom[i, j, k, l] = sum over block (i, j) of m du^k dv^l (m: the mask; du along
+    # columns, dv rows), zmom the same of z m
+    mom = np.empty((gh, gw, 2 * order + 1, 2 * order + 1))
+    zmom = np.empty((gh, gw, order + 1, order + 1))
+    print_kernel.block_moments(depth, valid, z_ref_mm, powers, order + 1, mom, zmom)
 
     radius = max(0, math.ceil(2.5 * sigma))
     b, a = np.mgrid[-radius:radius + 1, -radius:radius + 1].astype(np.float64)  # rows, cols
@@ -382,16 +380,6 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     full_valid = np.zeros(full_shape, dtype=bool)
     full_valid[br:br + gh, bc:bc + gw] = node_valid
     return full_valid, out
-
-
-def _block_moments(x: np.ndarray, powers: np.ndarray, gh: int, gw: int,
-                   step: int) -> np.ndarray:
-    """(gh, gw, P, P) sums over each step x step block of x * du^k * dv^l, ``powers``
-    (step, P) holding d^k for the offsets d within a block: two matrix products."""
-    n = powers.shape[1]
-    cols = (x.reshape(-1, step) @ powers).reshape(gh, step, gw, n)  # sum over du
-    rows = np.ascontiguousarray(cols.transpose(0, 2, 3, 1)) @ powers  # (gh, gw, k, l)
-    return rows
 
 
 def _springs(index: np.ndarray) -> np.ndarray:
