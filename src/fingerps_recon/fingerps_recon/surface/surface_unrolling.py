@@ -40,6 +40,7 @@ fingertip's cap, a sphere) cannot, and the residual strain (rms and max of
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -339,20 +340,11 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     zmom = np.empty((gh, gw, order + 1, order + 1))
     print_kernel.block_moments(depth, valid, z_ref_mm, powers, order + 1, mom, zmom)
 
-    radius = max(0, math.ceil(2.5 * sigma))
-    b, a = np.mgrid[-radius:radius + 1, -radius:radius + 1].astype(np.float64)  # rows, cols
-    g = np.exp(-(a * a + b * b) / (2 * sigma * sigma)) if sigma > 0 else np.ones_like(a)
-
     def shifted(moments: np.ndarray, k: int, el: int) -> np.ndarray:
         """Gaussian-weighted sum over neighbour blocks of sum m du^k dv^l about the node."""
         out = np.zeros(moments.shape[:2])
-        for p in range(k + 1):
-            for q in range(el + 1):
-                kern = math.comb(k, p) * math.comb(el, q) * g * a ** (k - p) * b ** (el - q)
-                if radius == 0 and (k - p or el - q):
-                    continue  # a single block: no shift
-                out += cv2.filter2D(moments[..., p, q], -1, kern,
-                                    borderType=cv2.BORDER_CONSTANT)
+        for (p, q), kern in _shift_kernels(float(sigma), k, el):
+            out += cv2.filter2D(moments[..., p, q], -1, kern, borderType=cv2.BORDER_CONSTANT)
         return out
 
     terms = [(k, n - k) for n in range(order + 1) for k in range(n, -1, -1)]
@@ -380,6 +372,26 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     full_valid = np.zeros(full_shape, dtype=bool)
     full_valid[br:br + gh, bc:bc + gw] = node_valid
     return full_valid, out
+
+
+@functools.lru_cache(maxsize=64)
+def _shift_kernels(sigma: float, k: int, el: int) -> tuple[tuple[tuple[int, int], np.ndarray], ...]:
+    """The correlation kernels of :func:`_node_depths`' binomial shift of the moments of
+    order (k, el): ((p, q), C(k, p) C(el, q) g a^(k - p) b^(el - q)) over the neighbour
+    blocks (a, b) (columns, rows; Gaussian weights g of sigma ``sigma`` blocks). They depend
+    on the options only, so they are made once."""
+    radius = max(0, math.ceil(2.5 * sigma))
+    b, a = np.mgrid[-radius:radius + 1, -radius:radius + 1].astype(np.float64)  # rows, cols
+    g = np.exp(-(a * a + b * b) / (2 * sigma * sigma)) if sigma > 0 else np.ones_like(a)
+    kernels = []
+    for p in range(k + 1):
+        for q in range(el + 1):
+            if radius == 0 and (k - p or el - q):
+                continue  # a single block: no shift
+            kern = math.comb(k, p) * math.comb(el, q) * g * a ** (k - p) * b ** (el - q)
+            kern.setflags(write=False)
+            kernels.append(((p, q), kern))
+    return tuple(kernels)
 
 
 def _springs(index: np.ndarray) -> np.ndarray:
