@@ -28,10 +28,12 @@ from fingerps_recon.photometric.pipeline import (
     ReconstructionOptions,
     reconstruct,
 )
+from fingerps_recon.surface import print_kernel
 
 # Modules holding numba kernels (cache=True), counted in the report.
 KERNEL_MODULES = ("fingerps_recon.photometric.hk_kernel",
-                  "fingerps_recon.photometric.lambertian_kernel")
+                  "fingerps_recon.photometric.lambertian_kernel",
+                  "fingerps_recon.surface.print_kernel")
 _SIZE = 40          # synthetic image side, pixels
 _RADIUS = 16.0      # synthetic hemisphere radius, pixels
 _LEDS = 7
@@ -62,8 +64,10 @@ class WarmUp:
 
 def warm_up_kernels() -> WarmUp:
     """Compile or load every kernel the pipeline uses by reconstructing a tiny synthetic
-    burst (a Lambertian hemisphere under near and distant lights) with the HK model."""
+    burst (a Lambertian hemisphere under near and distant lights) with the HK model, and
+    the rolled print's kernels (:func:`fingerps_recon.surface.print_kernel.warm_up`)."""
     start = time.perf_counter()
+    print_kernel.warm_up()
     images, lights, leds, k_matrix, portions = _synthetic_burst()
     for led_positions in (leds, None):
         for model in (Model.HK, Model.LAMBERT):

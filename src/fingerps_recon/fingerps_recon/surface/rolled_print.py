@@ -20,7 +20,8 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    with ``cv2.remap`` through the inverse map of the unrolling, mirrored left-right (below).
 3. Band pass on the print plane, where the ridge period is the skin's: a difference of
    Gaussians (sigma 0.06 and 0.3 mm: passes periods of ~0.25-1.2 mm), as normalized
-   convolutions within the print's mask, so the outside does not enter.
+   convolutions within the print's mask, so the outside does not enter; the windows of
+   0.3 mm and more are computed at half resolution (250 ppi), where they are well sampled.
 4. Local contrast normalisation: zero mean and unit standard deviation in ~1 mm windows
    (Gaussian sigma 0.4 mm), then ridges dark on white: grey = 127.5 (1 - n / 2) clipped to
    0..255 (a sinusoidal ridge spans ~37..218), 255 outside the finger. Optionally
@@ -57,6 +58,7 @@ import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError, RolledPrintError, UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
+from fingerps_recon.surface import print_kernel
 from fingerps_recon.surface.surface_unrolling import SurfaceUnrolling, unroll_surface
 
 MM_PER_INCH = 25.4
@@ -203,7 +205,7 @@ def rolled_print(
         raise FingerpsReconError(f"depth_m {depth.shape} and mask {np.shape(mask)} must be "
                                  "the same (H, W) shape")
     valid = np.asarray(mask, dtype=bool) & np.isfinite(depth)
-    signal = _ridge_signal(depth, valid, k, height_m, normals_ps, options.signal)
+    signal, (row0, col0) = _ridge_signal(depth, valid, k, height_m, normals_ps, options.signal)
     timings["signal"] = (time.perf_counter() - t0) * 1e3
 
     t1 = time.perf_counter()
@@ -244,10 +246,13 @@ def rolled_print(
     src_x, src_y, off = (np.ascontiguousarray(a[:, ::-1]) for a in (src_x, src_y, off))
     src_x[off] = -1e4
     src_y[off] = -1e4
-    weight = cv2.remap(valid.astype(np.float32), src_x, src_y, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    sig = cv2.remap(np.where(valid, signal, 0.0).astype(np.float32), src_x, src_y,
-                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    # From the signal's box (one-channel remaps: OpenCV interpolates them in float; with
+    # more channels in fixed point, 1/32 px).
+    box = (slice(row0, row0 + signal.shape[0]), slice(col0, col0 + signal.shape[1]))
+    box_x, box_y = src_x - np.float32(col0), src_y - np.float32(row0)
+    weight, sig = (cv2.remap(image, box_x, box_y, cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+                   for image in (valid[box].astype(np.float32), signal))
     inside = weight >= _MIN_WEIGHT
     trim = round(options.trim_mm * ppmm)
     if trim > 0:
@@ -285,61 +290,65 @@ def rolled_print(
 
 def _ridge_signal(depth: np.ndarray, valid: np.ndarray, k: np.ndarray,
                   height_m: np.ndarray | None, normals_ps: np.ndarray | None,
-                  kind: RidgeSignal) -> np.ndarray:
-    """(H, W) float32 ridge signal (positive on ridges, arbitrary units), 0 off ``valid``;
-    ``valid`` is narrowed in place where the signal is undefined."""
+                  kind: RidgeSignal) -> tuple[np.ndarray, tuple[int, int]]:
+    """Ridge signal (positive on ridges, arbitrary units), float32, 0 off ``valid``, on the
+    box of ``valid`` and one pixel around it; and the box's first (row, column). ``valid``
+    is narrowed in place where the signal is undefined."""
+    if kind is RidgeSignal.HEIGHT:
+        if height_m is not None and np.shape(height_m) != depth.shape:
+            raise FingerpsReconError(f"height_m {np.shape(height_m)} differs from depth_m "
+                                     f"{depth.shape}")
+    elif normals_ps is None or np.shape(normals_ps) != (*depth.shape, 3):
+        raise FingerpsReconError(
+            f"RidgeSignal.LAPLACIAN needs normals_ps of shape {(*depth.shape, 3)}, got "
+            f"{None if normals_ps is None else np.shape(normals_ps)}")
+    rows = np.flatnonzero(valid.any(axis=1))
+    cols = np.flatnonzero(valid.any(axis=0))
+    if rows.size == 0:
+        return np.zeros(depth.shape, dtype=np.float32), (0, 0)
+    box = (slice(max(rows[0] - 1, 0), rows[-1] + 2), slice(max(cols[0] - 1, 0), cols[-1] + 2))
+    origin = (box[0].start, box[1].start)
+    depth, valid = depth[box], valid[box]  # a view: narrowing it narrows the caller's
     if kind is RidgeSignal.HEIGHT:
         if height_m is None:
             relief = -1e3 * depth  # nearer = higher, millimetres
         else:
-            if np.shape(height_m) != depth.shape:
-                raise FingerpsReconError(f"height_m {np.shape(height_m)} differs from depth_m "
-                                         f"{depth.shape}")
-            relief = 1e3 * np.asarray(height_m, dtype=np.float32)
+            relief = 1e3 * np.asarray(height_m, dtype=np.float32)[box]
         valid &= np.isfinite(relief)
-        return np.where(valid, relief, 0.0).astype(np.float32)
-    if normals_ps is None or np.shape(normals_ps) != (*depth.shape, 3):
-        raise FingerpsReconError(
-            f"RidgeSignal.LAPLACIAN needs normals_ps of shape {(*depth.shape, 3)}, got "
-            f"{None if normals_ps is None else np.shape(normals_ps)}")
-    n = np.asarray(normals_ps, dtype=np.float32)
-    nz = np.maximum(n[..., 2], _MIN_NZ)
-    p = -n[..., 0] / nz   # dh/dx, x right
-    q = -n[..., 1] / nz   # dh/dy, y up
+        return np.where(valid, relief, 0.0).astype(np.float32), origin
     # Metric pixel size z / f: one depth for all pixels (the finger's depth varies by a few
     # per cent, and the local normalisation removes the overall scale); fx and fy may differ.
-    z_mm = 1e3 * float(np.median(depth[valid][::7])) if valid.any() else 1.0
+    z_mm = 1e3 * float(np.median(depth[valid][::7]))
     dx_mm, dy_mm = z_mm / k[0, 0], z_mm / k[1, 1]
-    lap = np.zeros_like(p)
-    # div(p, q) = dp/dx + dq/dy; image rows run down, so dq/dy = -dq/drow.
-    lap[1:-1, 1:-1] = ((p[1:-1, 2:] - p[1:-1, :-2]) * np.float32(0.5 / dx_mm)
-                       - (q[2:, 1:-1] - q[:-2, 1:-1]) * np.float32(0.5 / dy_mm))
-    inner = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    valid &= inner
-    return np.where(valid, -lap, 0.0).astype(np.float32)
+    signal = np.empty(valid.shape, dtype=np.float32)
+    keep = np.empty(valid.shape, dtype=bool)
+    print_kernel.ridge_laplacian(np.asarray(normals_ps, dtype=np.float32)[box], valid,
+                                 np.float32(_MIN_NZ), np.float32(0.5 / dx_mm),
+                                 np.float32(0.5 / dy_mm), signal, keep)
+    valid &= keep
+    return signal, origin
 
 
 def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
              options: RolledPrintOptions) -> tuple[np.ndarray, float]:
     """Band pass, local normalisation and grey levels on the print plane; the mean
-    orientation coherence."""
+    orientation coherence.
+
+    The smoothings of 0.3 mm and more (the band pass's coarse Gaussian, the normalisation's
+    and the structure tensor's windows) run at half resolution (:class:`_HalfScale`); the
+    fine Gaussian of the band pass at full resolution."""
     w = inside.astype(np.float32)
     s = signal.astype(np.float32)
-
-    def smooth(x: np.ndarray, sigma_mm: float, den: np.ndarray | None = None) -> np.ndarray:
-        sigma = sigma_mm * ppmm
-        num = cv2.GaussianBlur(x * w, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
-        if den is None:
-            den = cv2.GaussianBlur(w, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
-        return num / np.maximum(den, 1e-6)
-
-    fine, coarse = options.band_sigmas_mm
-    band = smooth(s, fine) - smooth(s, coarse)
-    sn = options.normalisation_sigma_mm
-    den_n = cv2.GaussianBlur(w, (0, 0), sn * ppmm, borderType=cv2.BORDER_CONSTANT)
-    mean = smooth(band, sn, den_n)
-    centred = band - mean
-    var = smooth(centred * centred, sn, den_n)
+    half = _HalfScale(w)
+    fine_mm, coarse_mm = options.band_sigmas_mm
+    sigma = fine_mm * ppmm
+    fine = (cv2.GaussianBlur(s * w, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+            / np.maximum(cv2.GaussianBlur(w, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT),
+                         1e-6))
+    band = fine - half.smooth(s, coarse_mm * ppmm)
+    sn = options.normalisation_sigma_mm * ppmm
+    centred = band - half.smooth(band, sn)
+    var = half.smooth(centred * centred, sn)
     floor = float(np.median(var[inside])) * 0.01 if inside.any() else 1.0
     norm = centred / np.sqrt(var + max(floor, 1e-30))
 
@@ -347,19 +356,63 @@ def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
     gx = cv2.Sobel(norm, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(norm, cv2.CV_32F, 0, 1, ksize=3)
     core = cv2.erode(inside.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    gxx = smooth(gx * gx * core, sn, den_n)
-    gyy = smooth(gy * gy * core, sn, den_n)
-    gxy = smooth(gx * gy * core, sn, den_n)
+    gx *= core
+    gy *= core
+    # At half resolution: the mean coherence over the core needs no finer sampling.
+    gxx, gyy, gxy = (half.smooth(g, sn, up=False) for g in (gx * gx, gy * gy, gx * gy))
     coherence = np.sqrt((gxx - gyy) ** 2 + 4 * gxy * gxy) / np.maximum(gxx + gyy, 1e-12)
+    core_half = half.down(core.astype(np.float32)) > 0.999  # all four pixels in the core
 
     if options.gabor:
         # Across the ridges: the direction of the structure tensor's main eigenvector.
+        gxx, gyy, gxy = (half.up(t) for t in (gxx, gyy, gxy))
         across = 0.5 * np.arctan2(2 * gxy, gxx - gyy)
         norm = _gabor(np.where(inside, norm, 0.0).astype(np.float32), inside, across,
                       options.gabor_period_mm * ppmm)
     grey = np.clip(127.5 * (1.0 - 0.5 * norm), 0.0, 255.0)
     image = np.where(inside, np.rint(grey), 255.0).astype(np.uint8)
-    return image, float(coherence[core].mean()) if core.any() else 0.0
+    return image, float(coherence[core_half].mean()) if core_half.any() else 0.0
+
+
+class _HalfScale:
+    """Normalized Gaussian convolution within the weights ``w`` (Knutsson & Westin 1993:
+    blur(x w) / blur(w)) computed at half resolution: 2x2 means down, the Gaussian, bilinear
+    up. The means and the interpolation add 1/4 and 3/4 px^2 of variance, so the Gaussian's
+    is sigma^2 - 1 (full-resolution pixels). Meant for sigma >= ~5 px (0.25 mm at 500 ppi):
+    on prints of the simulated rig the grey levels then stay within 3 of those smoothed at
+    full resolution."""
+
+    def __init__(self, w: np.ndarray) -> None:
+        self.shape = w.shape
+        h, wd = w.shape
+        self._pad = (h % 2, wd % 2)  # even sizes: half-resolution pixel i covers 2i, 2i+1
+        self.w = w
+        self.w_half = self.down(w)
+        self._den: dict[float, np.ndarray] = {}
+
+    def down(self, x: np.ndarray) -> np.ndarray:
+        """2x2 means of ``x`` (zero-padded to even sizes)."""
+        if any(self._pad):
+            x = cv2.copyMakeBorder(x, 0, self._pad[0], 0, self._pad[1], cv2.BORDER_CONSTANT)
+        return cv2.resize(x, (x.shape[1] // 2, x.shape[0] // 2), interpolation=cv2.INTER_AREA)
+
+    def up(self, x: np.ndarray) -> np.ndarray:
+        """Bilinear interpolation of a half-resolution ``x`` at the full-resolution pixels."""
+        h, wd = self.shape
+        return cv2.resize(x, (x.shape[1] * 2, x.shape[0] * 2),
+                          interpolation=cv2.INTER_LINEAR)[:h, :wd]
+
+    def smooth(self, x: np.ndarray, sigma_px: float, *, up: bool = True) -> np.ndarray:
+        """(H, W) float32 normalized blur of ``x`` (sigma in full-resolution px); at half
+        resolution if not ``up``."""
+        sigma = 0.5 * math.sqrt(max(sigma_px * sigma_px - 1.0, 0.25))
+        if sigma not in self._den:
+            self._den[sigma] = np.maximum(cv2.GaussianBlur(
+                self.w_half, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT), 1e-6)
+        ratio = cv2.GaussianBlur(self.down(x * self.w), (0, 0), sigma,
+                                 borderType=cv2.BORDER_CONSTANT)
+        ratio /= self._den[sigma]
+        return self.up(ratio) if up else ratio
 
 
 def _gabor(x: np.ndarray, inside: np.ndarray, across: np.ndarray, period_px: float,

@@ -25,8 +25,9 @@ Steps (:func:`unroll_surface`):
    sees it; :func:`fingerps_recon.surface.rolled_print.rolled_print` mirrors it left-right into
    the legacy orientation of rolled prints).
 3. Relaxation: minimise sum_ij ((|x_i - x_j| - L_ij) / L_ij)^2 (relative strain, every
-   spring weighted alike) by Levenberg-Marquardt with a sparse normal-equation solve
-   (~600-800 nodes on the rig: 3 iterations of ~5 ms).
+   spring weighted alike) by Levenberg-Marquardt; the normal equations are banded in the
+   row-major node order, so each step is a banded Cholesky solve (~600-800 nodes on the
+   rig: 3 iterations of ~1 ms).
 4. Rigid motion: the layout is rotated onto the image-plane positions of its nodes
    (Procrustes without reflection), so the finger keeps its direction in the image (the
    rig's finger points up the image), and shifted so that the apex (the node nearest the
@@ -39,18 +40,18 @@ fingertip's cap, a sphere) cannot, and the residual strain (rms and max of
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from functools import cached_property
 
 import cv2
 import numpy as np
-import scipy.ndimage
-import scipy.sparse
-import scipy.sparse.linalg
+import scipy.linalg
 
 from fingerps_recon.errors import UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
+from fingerps_recon.surface import print_kernel
 
 # Neighbour offsets (rows, cols) of the springs: right, down, down-right, down-left.
 _SPRINGS = ((0, 1), (1, 0), (1, 1), (1, -1))
@@ -60,9 +61,6 @@ _STEP_TOLERANCE_MM = 5e-3
 # ... or the relative decrease of the cost below this.
 _COST_TOLERANCE = 1e-4
 _LAMBDA_START = 1e-4
-# Triangles spanning more grid cells than this are left out of the inverse map (a mesh
-# cell is ~2-5 cells of the coarse print grid).
-_MAX_TRIANGLE_CELLS = 64
 # Smallest eigenvalue of a node's normalised local-fit system (a sliver is left out).
 _MIN_FIT_CONDITION = 1e-4
 
@@ -208,43 +206,13 @@ def _rasterise(xy: np.ndarray, values: np.ndarray, triangles: np.ndarray, *,
                origin: tuple[float, float], pitch: tuple[float, float],
                shape: tuple[int, int]) -> np.ndarray:
     """(h, w, 2) float32 barycentric interpolation of ``values`` (N, 2) over ``triangles``
-    of the points ``xy`` (N, 2), sampled at origin + (col, row) * pitch; NaN off them.
-
-    Every triangle is tested against the grid points of its bounding box at once (a
-    fixed k x k window per triangle, k the largest box)."""
-    h, w = shape
-    out = np.full((h, w, 2), np.nan, dtype=np.float32)
-    g = (xy - np.asarray(origin)) / np.asarray(pitch)  # node positions in grid units
-    p = g[triangles]  # (T, 3, 2)
-    lo = np.floor(p.min(axis=1)).astype(np.int64) + 1
-    hi = np.floor(p.max(axis=1)).astype(np.int64)
-    sane = (hi - lo).max(axis=1) < _MAX_TRIANGLE_CELLS  # a fold's sliver would cost k^2
-    p, lo, hi, triangles = p[sane], lo[sane], hi[sane], triangles[sane]
-    k = int(max(1, (hi - lo).max() + 1)) if len(triangles) else 0
-    if k == 0:
-        return out
-    off = np.arange(k)
-    cx = lo[:, 0, None, None] + off[None, None, :]  # (T, 1, k)
-    cy = lo[:, 1, None, None] + off[None, :, None]  # (T, k, 1)
-    # Barycentric coordinates of (cx, cy) in each triangle.
-    a, b, c = p[:, 0], p[:, 1], p[:, 2]
-    v0, v1 = b - a, c - a
-    den = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
-    good = np.abs(den) > 1e-12
-    den = np.where(good, den, 1.0)[:, None, None]
-    px = cx - a[:, 0, None, None]
-    py = cy - a[:, 1, None, None]
-    l1 = (px * v1[:, 1, None, None] - py * v1[:, 0, None, None]) / den
-    l2 = (v0[:, 0, None, None] * py - v0[:, 1, None, None] * px) / den
-    l0 = 1.0 - l1 - l2
-    eps = 1e-9
-    hit = ((l0 >= -eps) & (l1 >= -eps) & (l2 >= -eps) & good[:, None, None]
-           & (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h))
-    t, iy, ix = np.nonzero(hit)
-    val = values[triangles[t]]  # (M, 3, 2)
-    bary = np.stack([l0[t, iy, ix], l1[t, iy, ix], l2[t, iy, ix]], axis=1)
-    out[np.broadcast_to(cy, hit.shape)[t, iy, ix], np.broadcast_to(cx, hit.shape)[t, iy, ix]] = (
-        np.einsum("mk,mkc->mc", bary, val))
+    of the points ``xy`` (N, 2), sampled at origin + (col, row) * pitch; NaN off them
+    (:func:`fingerps_recon.surface.print_kernel.rasterise`)."""
+    out = np.full((*shape, 2), np.nan, dtype=np.float32)
+    grid_xy = (np.asarray(xy, dtype=np.float64) - np.asarray(origin)) / np.asarray(pitch)
+    print_kernel.rasterise(np.ascontiguousarray(grid_xy),
+                           np.ascontiguousarray(values, dtype=np.float64),
+                           np.ascontiguousarray(triangles, dtype=np.int64), out)
     return out
 
 
@@ -293,7 +261,9 @@ def unroll_surface(
     SurfaceUnrolling
     """
     k = checked_camera_matrix(camera_matrix)
-    depth = np.asarray(depth_m, dtype=np.float64)
+    depth = np.asarray(depth_m)
+    if not np.issubdtype(depth.dtype, np.floating):
+        depth = depth.astype(np.float64)
     if depth.ndim != 2 or np.shape(mask) != depth.shape:
         raise UnrollingError(f"depth {depth.shape} and mask {np.shape(mask)} must be the same "
                              "(H, W) shape")
@@ -304,7 +274,7 @@ def unroll_surface(
             or fit_order not in (1, 2)):
         raise UnrollingError("spacing_mm must be > 0, smoothing_nodes >= 0, 0 < min_fill <= 1 "
                              "and fit_order 1 or 2")
-    z_ref_mm = 1e3 * float(np.median(depth[valid][::7]))
+    z_ref_mm = 1e3 * float(np.median(depth[valid][::7].astype(np.float64)))
     pixel_mm = z_ref_mm / k[0, 0]
     step = max(2, round(spacing_mm / pixel_mm))
 
@@ -351,32 +321,30 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     Moments of each block about its own centre (coordinates in blocks) are computed once;
     a neighbour block's moments about the target node's centre follow by the binomial
     shift sum_p C(k, p) a^(k - p) S_p, so the whole fit is a few dozen small correlations
-    of the (gh, gw) moment grids and one small solve per node."""
+    of the (gh, gw) moment grids and one small solve per node. Only the blocks of the box
+    of ``valid`` are fitted (the others hold no surface)."""
+    full_shape = (-(-depth.shape[0] // step), -(-depth.shape[1] // step))
+    rows = np.flatnonzero(valid.any(axis=1))
+    cols = np.flatnonzero(valid.any(axis=0))
+    br, bc = rows[0] // step, cols[0] // step
+    box = (slice(br * step, (rows[-1] // step + 1) * step),
+           slice(bc * step, (cols[-1] // step + 1) * step))
+    depth, valid = depth[box], valid[box]
     h, w = depth.shape
     gh, gw = -(-h // step), -(-w // step)
-    m = np.zeros((gh * step, gw * step))
-    m[:h, :w] = valid
-    z = np.zeros_like(m)
-    z[:h, :w] = np.where(valid, 1e3 * depth - z_ref_mm, 0.0)
     d = (np.arange(step) - (step - 1) / 2.0) / step  # offset in blocks within a block
     powers = d[:, None] ** np.arange(2 * order + 1)  # (s, 2 order + 1)
-    # mom[i, j, k, l] = sum over block (i, j) of m du^k dv^l (du along columns, dv rows)
-    mom = _block_moments(m, powers, gh, gw, step)
-    zmom = _block_moments(z, powers[:, :order + 1], gh, gw, step)
-
-    radius = max(0, math.ceil(2.5 * sigma))
-    b, a = np.mgrid[-radius:radius + 1, -radius:radius + 1].astype(np.float64)  # rows, cols
-    g = np.exp(-(a * a + b * b) / (2 * sigma * sigma)) if sigma > 0 else np.ones_like(a)
+    # mom[i, j, k, l] = sum over block (i, j) of m du^k dv^l (m: the mask; du along
+    # columns, dv rows), zmom the same of z m
+    mom = np.empty((gh, gw, 2 * order + 1, 2 * order + 1))
+    zmom = np.empty((gh, gw, order + 1, order + 1))
+    print_kernel.block_moments(depth, valid, z_ref_mm, powers, order + 1, mom, zmom)
 
     def shifted(moments: np.ndarray, k: int, el: int) -> np.ndarray:
         """Gaussian-weighted sum over neighbour blocks of sum m du^k dv^l about the node."""
         out = np.zeros(moments.shape[:2])
-        for p in range(k + 1):
-            for q in range(el + 1):
-                kern = math.comb(k, p) * math.comb(el, q) * g * a ** (k - p) * b ** (el - q)
-                if radius == 0 and (k - p or el - q):
-                    continue  # a single block: no shift
-                out += scipy.ndimage.correlate(moments[..., p, q], kern, mode="constant")
+        for (p, q), kern in _shift_kernels(float(sigma), k, el):
+            out += cv2.filter2D(moments[..., p, q], -1, kern, borderType=cv2.BORDER_CONSTANT)
         return out
 
     terms = [(k, n - k) for n in range(order + 1) for k in range(n, -1, -1)]
@@ -397,21 +365,33 @@ def _node_depths(depth: np.ndarray, valid: np.ndarray, step: int, sigma: float,
     good = np.linalg.eigvalsh(norm)[:, 0] > _MIN_FIT_CONDITION
     sol = np.zeros_like(rhs)
     sol[good] = np.linalg.solve(mat[good], rhs[good][..., None])[..., 0]
-    out = np.zeros((gh, gw))
-    out[node_valid] = sol[:, 0]
+    out = np.zeros(full_shape)
+    out[br:br + gh, bc:bc + gw][node_valid] = sol[:, 0]
     idx = np.flatnonzero(node_valid)
     node_valid.reshape(-1)[idx[~good]] = False
-    return node_valid, out
+    full_valid = np.zeros(full_shape, dtype=bool)
+    full_valid[br:br + gh, bc:bc + gw] = node_valid
+    return full_valid, out
 
 
-def _block_moments(x: np.ndarray, powers: np.ndarray, gh: int, gw: int,
-                   step: int) -> np.ndarray:
-    """(gh, gw, P, P) sums over each step x step block of x * du^k * dv^l, ``powers``
-    (step, P) holding d^k for the offsets d within a block: two matrix products."""
-    n = powers.shape[1]
-    cols = (x.reshape(-1, step) @ powers).reshape(gh, step, gw, n)  # sum over du
-    rows = np.ascontiguousarray(cols.transpose(0, 2, 3, 1)) @ powers  # (gh, gw, k, l)
-    return rows
+@functools.lru_cache(maxsize=64)
+def _shift_kernels(sigma: float, k: int, el: int) -> tuple[tuple[tuple[int, int], np.ndarray], ...]:
+    """The correlation kernels of :func:`_node_depths`' binomial shift of the moments of
+    order (k, el): ((p, q), C(k, p) C(el, q) g a^(k - p) b^(el - q)) over the neighbour
+    blocks (a, b) (columns, rows; Gaussian weights g of sigma ``sigma`` blocks). They depend
+    on the options only, so they are made once."""
+    radius = max(0, math.ceil(2.5 * sigma))
+    b, a = np.mgrid[-radius:radius + 1, -radius:radius + 1].astype(np.float64)  # rows, cols
+    g = np.exp(-(a * a + b * b) / (2 * sigma * sigma)) if sigma > 0 else np.ones_like(a)
+    kernels = []
+    for p in range(k + 1):
+        for q in range(el + 1):
+            if radius == 0 and (k - p or el - q):
+                continue  # a single block: no shift
+            kern = math.comb(k, p) * math.comb(el, q) * g * a ** (k - p) * b ** (el - q)
+            kern.setflags(write=False)
+            kernels.append(((p, q), kern))
+    return tuple(kernels)
 
 
 def _springs(index: np.ndarray) -> np.ndarray:
@@ -447,12 +427,28 @@ def _arc_length_layout(points: np.ndarray, index: np.ndarray, r0: int, c0: int,
 
 def _relax(xy: np.ndarray, springs: np.ndarray, rest: np.ndarray,
            max_iterations: int) -> tuple[np.ndarray, int]:
-    """Levenberg-Marquardt on the relative spring strains (|x_i - x_j| - L) / L."""
+    """Levenberg-Marquardt on the relative spring strains (|x_i - x_j| - L) / L.
+
+    The normal equations are banded (springs join nodes at most one mesh row apart in the
+    row-major node order), so each step is a banded Cholesky solve (LAPACK pbsv), the
+    matrix assembled by ``np.bincount`` straight into LAPACK's lower band storage."""
     n = xy.shape[0]
-    e = springs.shape[0]
     i, j = springs[:, 0], springs[:, 1]
-    rows = np.repeat(np.arange(e), 4)
-    cols = np.stack([2 * i, 2 * i + 1, 2 * j, 2 * j + 1], axis=1).ravel()
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    bands = 2 * int((hi - lo).max()) + 2  # the diagonal and the sub-diagonals of J^T J
+    size = 2 * n
+    # Flat indices into the (bands, 2n) lower band storage ab[r - c, c] = A[r, c], r >= c:
+    # the 2x2 blocks (lo, lo) and (hi, hi) get +u u^T, the block (hi, lo) -u u^T.
+    def at(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+        return (r - c) * size + c
+
+    diag_xx = np.concatenate([at(2 * lo, 2 * lo), at(2 * hi, 2 * hi)])
+    diag_xy = np.concatenate([at(2 * lo + 1, 2 * lo), at(2 * hi + 1, 2 * hi)])
+    diag_yy = np.concatenate([at(2 * lo + 1, 2 * lo + 1), at(2 * hi + 1, 2 * hi + 1)])
+    off = np.stack([at(2 * hi, 2 * lo), at(2 * hi + 1, 2 * lo), at(2 * hi, 2 * lo + 1),
+                    at(2 * hi + 1, 2 * lo + 1)])
+    flat = np.concatenate([diag_xx, diag_xy, diag_yy, off.ravel()])
+    grad_index = np.concatenate([2 * i, 2 * i + 1, 2 * j, 2 * j + 1])
 
     def residual(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         d = p[j] - p[i]
@@ -464,19 +460,25 @@ def _relax(xy: np.ndarray, springs: np.ndarray, rest: np.ndarray,
     lam = _LAMBDA_START
     iterations = 0
     for iterations in range(1, max_iterations + 1):  # noqa: B007 - reported
+        # Row of the Jacobian of spring e: -u at node i, +u at node j.
         u = d / (np.maximum(length, 1e-12) * rest)[:, None]
-        data = np.concatenate([-u, u], axis=1).ravel()
-        jac = scipy.sparse.csr_matrix((data, (rows, cols)), shape=(e, 2 * n))
-        jtj = (jac.T @ jac).tocsc()
-        g = jac.T @ r
-        diag = jtj.diagonal()
+        uxx, uxy, uyy = u[:, 0] * u[:, 0], u[:, 0] * u[:, 1], u[:, 1] * u[:, 1]
+        weights = np.concatenate([uxx, uxx, uxy, uxy, uyy, uyy, -uxx, -uxy, -uxy, -uyy])
+        jtj = np.bincount(flat, weights, minlength=bands * size).reshape(bands, size)
+        ur = u * r[:, None]
+        g = np.bincount(grad_index, np.concatenate([-ur[:, 0], -ur[:, 1], ur[:, 0], ur[:, 1]]),
+                        minlength=size)
+        diag = jtj[0].copy()
         improved = False
         for _ in range(8):
-            a = jtj + scipy.sparse.diags(lam * (diag + 1e-9 * diag.mean()), format="csc")
-            # Symmetric positive definite: symmetric ordering, no pivoting (~2x faster).
-            step = -scipy.sparse.linalg.splu(
-                a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                options={"SymmetricMode": True}).solve(g).reshape(n, 2)
+            a = jtj.copy()
+            a[0] += lam * (diag + 1e-9 * diag.mean())
+            try:
+                step = -scipy.linalg.solveh_banded(a, g, lower=True, overwrite_ab=True,
+                                                   check_finite=False).reshape(n, 2)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
             trial = xy + step
             r_t, d_t, len_t = residual(trial)
             cost_t = float(r_t @ r_t)
@@ -508,45 +510,43 @@ def _rigid_to_image(xy: np.ndarray, image_mm: np.ndarray, apex: int) -> np.ndarr
 def _extended_grid(xy: np.ndarray, node_valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """See ``SurfaceUnrolling._extended``."""
     gh, gw = node_valid.shape[0] + 2, node_valid.shape[1] + 2
-    grid = np.zeros((gh, gw, 2))
-    weight = np.zeros((gh, gw))
-    grid[1:-1, 1:-1][node_valid] = xy
-    weight[1:-1, 1:-1] = node_valid
-    kern = np.ones((3, 3))
+    # Two more empty nodes on every side, so that the neighbours two steps away of every
+    # grid node are array slices (they hold no node beyond the grid).
+    pad = 2
+    grid = np.zeros((gh + 2 * pad, gw + 2 * pad, 2))
+    weight = np.zeros((gh + 2 * pad, gw + 2 * pad))
+    inner = (slice(pad + 1, pad + gh - 1), slice(pad + 1, pad + gw - 1))
+    grid[inner][node_valid] = xy
+    weight[inner] = node_valid
+    core = (slice(pad, pad + gh), slice(pad, pad + gw))
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+
+    def shifted(a: np.ndarray, dr: int, dc: int) -> np.ndarray:
+        """a at the node (r - dr, c - dc) of each grid node (r, c)."""
+        return a[pad - dr:pad - dr + gh, pad - dc:pad - dc + gw]
+
     for _ in range(2):  # extrapolate one ring of nodes at a time (linear from two back)
-        grown = scipy.ndimage.binary_dilation(weight > 0)
-        new = grown & (weight == 0)
+        has = (weight > 0).astype(np.uint8)
+        new = (cv2.dilate(has, cross)[core] > 0) & (weight[core] == 0)
         if not new.any():
             break
         # Linear extrapolation along each axis where possible, else the neighbours' mean.
-        acc = np.zeros_like(grid)
+        acc = np.zeros((gh, gw, 2))
         cnt = np.zeros((gh, gw))
         for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-            n1 = np.roll(weight, (dr, dc), (0, 1)) > 0
-            n2 = np.roll(weight, (2 * dr, 2 * dc), (0, 1)) > 0
-            ok = new & n1 & n2 & _in_range((gh, gw), dr, dc, 2)
-            g1 = np.roll(grid, (dr, dc), (0, 1))
-            g2 = np.roll(grid, (2 * dr, 2 * dc), (0, 1))
-            acc[ok] += 2 * g1[ok] - g2[ok]
+            ok = new & (shifted(weight, dr, dc) > 0) & (shifted(weight, 2 * dr, 2 * dc) > 0)
+            acc[ok] += 2 * shifted(grid, dr, dc)[ok] - shifted(grid, 2 * dr, 2 * dc)[ok]
             cnt[ok] += 1
         fallback = new & (cnt == 0)
         if fallback.any():
-            s = np.stack([scipy.ndimage.correlate(grid[..., c] * weight, kern, mode="constant")
-                          for c in range(2)], -1)
-            wsum = scipy.ndimage.correlate(weight, kern, mode="constant")
-            acc[fallback] = s[fallback] / wsum[fallback][:, None]
+            wsum = cv2.boxFilter(weight, -1, (3, 3), normalize=False,
+                                 borderType=cv2.BORDER_CONSTANT)[core]
+            total = cv2.boxFilter(grid * weight[..., None], -1, (3, 3), normalize=False,
+                                  borderType=cv2.BORDER_CONSTANT)[core]
+            acc[fallback] = total[fallback] / wsum[fallback][:, None]
             cnt[fallback] = 1
-        grid[new] = acc[new] / cnt[new][:, None]
-        weight[new] = 1.0
-    filled = weight > 0
+        grid[core][new] = acc[new] / cnt[new][:, None]
+        weight[core][new] = 1.0
+    grid, filled = grid[core].copy(), weight[core] > 0
     grid[~filled] = np.nan
     return grid, filled
-
-
-def _in_range(shape: tuple[int, int], dr: int, dc: int, times: int) -> np.ndarray:
-    """Nodes whose neighbours ``times`` steps of (dr, dc) back lie inside the grid (rolled
-    arrays wrap around; this masks the wrapped ones)."""
-    gh, gw = shape
-    r, c = np.mgrid[0:gh, 0:gw]
-    return ((r - times * dr >= 0) & (r - times * dr < gh)
-            & (c - times * dc >= 0) & (c - times * dc < gw))
