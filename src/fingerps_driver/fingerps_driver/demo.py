@@ -7,8 +7,9 @@ reconstructions, measures the normals' angular error against the rig's ground tr
 a normal-map PNG, a depth PNG and a PLY point cloud, and stops the graph (SIGINT, so the
 recorder finalises its bag). This is a command-line tool, so its options are arguments.
 
-The summary reports the first burst's latency on its own line (it meets the warm-up) and the
-steady state over the bursts after it (throughput, latency median and p95;
+The summary reports the first burst's latency on its own line (it meets the warm-up; its
+cloud is awaited before the next burst is requested) and the steady state over the bursts
+after it, requested at ``--rate`` (throughput, latency median and p95;
 ``demo_figures``); ``--json`` prints the same figures as one JSON line on stdout (the summary
 then on stderr), ``--figures FILE`` writes them to a file. A figure with nothing to measure
 it on (no steady burst with ``--bursts 1``) is JSON null.
@@ -290,11 +291,15 @@ def run(args: argparse.Namespace) -> int:
         node.set_scene("finger")
         time.sleep(0.5)  # let recon_node receive the transient-local calibration
         capture_ms, requested, stamps = [], [], []
-        t_first = time.monotonic()
         period = 1.0 / args.rate if args.rate > 0 else 0.0
         for i in range(args.bursts):
-            # At the rig's rate: burst i is requested at t_first + i / rate.
-            time.sleep(max(0.0, t_first + i * period - time.monotonic()))
+            if i == 1:
+                # The first burst meets the warm-up: its cloud is awaited before the steady
+                # state starts, so that the bursts after it do not queue behind it.
+                wait_for_outputs(node.received, 1, quiet_s=40.0)
+                t_steady = time.monotonic()
+            if i >= 1:  # at the rig's rate: burst i is requested at t_steady + (i - 1) / rate
+                time.sleep(max(0.0, t_steady + (i - 1) * period - time.monotonic()))
             t0 = time.monotonic()
             response = node.call(node.capture, CaptureBurst.Request(), timeout=30.0,
                                  what="burst capture")
