@@ -113,3 +113,13 @@ def test_the_summary_of_a_single_burst_says_n_a():
     assert "  bursts captured / reconstructed : 1 / 20\n" in text
     assert "  steady state                    : 0 of 0 reconstructed, throughput n/a" in text
     assert "median n/a, p95 n/a" in text
+
+
+def test_the_json_figures_are_strict_json():
+    figures = {"led_position_error_mm_max": float("nan"), "e2e.bursts_per_s": float("inf"),
+               "e2e.mae_deg": 1.29, "model": "hk", "bursts_captured": 20,
+               "e2e.first_latency_ms": None}
+    line = json.dumps(demo.json_figures(figures), allow_nan=False)
+    assert json.loads(line) == {"led_position_error_mm_max": None, "e2e.bursts_per_s": None,
+                                "e2e.mae_deg": 1.29, "model": "hk", "bursts_captured": 20,
+                                "e2e.first_latency_ms": None}

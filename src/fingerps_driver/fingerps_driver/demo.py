@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import subprocess
 import sys
@@ -354,14 +355,22 @@ def run(args: argparse.Namespace) -> int:
     # With --json, stdout is the one JSON line (for a script) and the summary goes to stderr.
     print_summary(figures, out, codes, stream=sys.stderr if args.json else sys.stdout)
     if args.json:
-        print(json.dumps(figures, allow_nan=False), flush=True)
+        print(json.dumps(json_figures(figures), allow_nan=False), flush=True)
     if args.figures:
-        Path(args.figures).write_text(json.dumps(figures, indent=2, allow_nan=False) + "\n")
+        Path(args.figures).write_text(
+            json.dumps(json_figures(figures), indent=2, allow_nan=False) + "\n")
     bad = [name for (_, name), code in zip(GRAPH, codes, strict=True) if code != 0]
     if bad:
         TOOL.error(f"{', '.join(bad)} did not exit cleanly; see {logs}")
         return EXIT_FAILED
     return 0
+
+
+def json_figures(figures: dict[str, Figure | str]) -> dict[str, Figure | str]:
+    """The figures as strict JSON takes them: a NaN or infinite figure (e.g. the LED
+    positions' error when the calibration found none) becomes None (null)."""
+    return {k: None if isinstance(v, float) and not math.isfinite(v) else v
+            for k, v in figures.items()}
 
 
 def print_summary(f: dict[str, Figure | str], out: Path, codes: list[int], *,
