@@ -471,7 +471,9 @@ def _print(report: SpeedReport, repeats: int) -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     coretype = os.environ.get("OPENBLAS_CORETYPE")
     print(f"recon speed: 659x493 burst of 7, {repeats} runs each, {os.cpu_count()} cores, "
-          f"load average {load:.2f}, OPENBLAS_CORETYPE={coretype or 'unset'}")
+          f"load average {load:.2f}, OPENBLAS_CORETYPE={coretype or 'unset'}, numba target "
+          f"{os.environ.get('NUMBA_CPU_NAME', 'host')} ({simd_lanes(cpu_info()[1])} float32 "
+          "lanes)")
     print(f"  {'stage':<30} {'median':>8} {'IQR':>17} {'min-max':>17}   (ms)")
     for t in report.timings:
         q1, q3 = t.quartiles
