@@ -1,7 +1,7 @@
 # fingerps: set-up, build, demo, tests, benchmarks. Every target sets up what it needs.
 #   make demo   - the whole graph on the simulated rig, with a summary
 #   make test   - the whole test suite
-#   make bench  - every benchmark; figures into bench/results.json
+#   make bench  - every benchmark (the speed ones natively and with AVX-512 off); figures into bench/results.json
 #   make soak   - 30 min of the bringup graph at 5 bursts/s (not in bench); soak.* into bench/results.json
 SHELL := /bin/bash
 .SHELLFLAGS := -e -o pipefail -c

@@ -373,6 +373,33 @@ def run() -> dict[str, float]:
     return figures
 
 
+def run_print_timing() -> dict[str, float]:
+    """``fingerprint.<model>.print_ms_median`` alone: the same captures as :func:`run`,
+    reconstructed and printed, without NBIS (the AVX2 pass of bench/run_all.py)."""
+    prepared = calibrations()
+    times: dict[Model, list[float]] = {m: [] for m in MODELS}
+    for identity in range(IDENTITIES):
+        for capture in range(CAPTURES):
+            rig = posed_rig(identity, draw_pose(identity, capture))
+            images = np.stack([
+                rig.render(Scene.FINGER, [k], rng=np.random.default_rng(
+                    np.random.SeedSequence([SEED, identity, capture, k])))
+                for k in range(rig.led_count)])
+            for model in MODELS:
+                options = ReconstructionOptions(model=model, enhance=True)
+                recon = reconstruct_prepared(images, prepared[model],
+                                             full_scale=rig.max_value(), options=options)
+                try:
+                    fp = rolled_print(recon.depth_m, mask=recon.mask,
+                                      camera_matrix=rig.camera_matrix,
+                                      normals_ps=recon.normals_ps)
+                except RolledPrintError:
+                    continue
+                times[model].append(fp.timings_ms["total"])
+    return {f"fingerprint.{m.value}.print_ms_median":
+            float(np.median(times[m])) if times[m] else float("nan") for m in MODELS}
+
+
 def _score(a: PrintResult, b) -> float:
     """bozorth3 score of a capture's print against a template (0 if it has no print)."""
     if a.template is None or b is None:

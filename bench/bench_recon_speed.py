@@ -58,7 +58,7 @@ import importlib
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,6 +81,7 @@ from fingerps_recon.surface.integration import (
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from figures_report import parse_repeats
+from simd_env import cpu_info, simd_lanes
 
 RUNS = 15
 MIN_RUNS = 7
@@ -185,20 +186,22 @@ from fingerps_recon.photometric.pipeline import (  # noqa: E402
 )
 
 
-def peak_gflops() -> tuple[float, str]:
-    """The cores' float32 peak: cores x SIMD lanes (16 with AVX-512, 8 with AVX2) x 2 FMA
-    units x 2 flop x the nominal clock (``/proc/cpuinfo``), and how it was derived."""
-    flags, mhz = set(), 0.0
+def peak_gflops(env: Mapping[str, str] | None = None) -> tuple[float, str]:
+    """The cores' float32 peak: cores x SIMD lanes x 2 FMA units x 2 flop x the nominal clock
+    (``/proc/cpuinfo``), and how it was derived. The lanes are those of the run's numba
+    target (``simd_env.simd_lanes``, environment ``env``, default ``os.environ``): 16 with
+    AVX-512, 8 with AVX2 -- also in the AVX2 run on an AVX-512 machine, whose kernels are
+    compiled without AVX-512 (bench/run_all.py)."""
+    mhz = 0.0
     try:
         with open("/proc/cpuinfo") as info:
             for line in info:
-                if line.startswith("flags") and not flags:
-                    flags = set(line.split(":", 1)[1].split())
-                elif line.startswith("cpu MHz") and not mhz:
+                if line.startswith("cpu MHz"):
                     mhz = float(line.split(":", 1)[1])
+                    break
     except OSError:
         pass
-    lanes = 16 if "avx512f" in flags else 8 if "avx2" in flags else 4
+    lanes = simd_lanes(cpu_info()[1], env)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     ghz = mhz / 1e3 if mhz else float("nan")
     return (cores * lanes * 2 * 2 * ghz,
@@ -468,7 +471,9 @@ def _print(report: SpeedReport, repeats: int) -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     coretype = os.environ.get("OPENBLAS_CORETYPE")
     print(f"recon speed: 659x493 burst of 7, {repeats} runs each, {os.cpu_count()} cores, "
-          f"load average {load:.2f}, OPENBLAS_CORETYPE={coretype or 'unset'}")
+          f"load average {load:.2f}, OPENBLAS_CORETYPE={coretype or 'unset'}, numba target "
+          f"{os.environ.get('NUMBA_CPU_NAME', 'host')} ({simd_lanes(cpu_info()[1])} float32 "
+          "lanes)")
     print(f"  {'stage':<30} {'median':>8} {'IQR':>17} {'min-max':>17}   (ms)")
     for t in report.timings:
         q1, q3 = t.quartiles

@@ -19,7 +19,7 @@ from fingerps_driver import demo
 from fingerps_driver.errors import DemoError
 
 USAGE = ("usage: demo [-h] [--out OUT] [--bags BAGS] [--bursts BURSTS] [--rate RATE]\n"
-         "            [--figures FIGURES] [--model {lambert,hk}]\n")
+         "            [--figures FIGURES] [--json] [--model {lambert,hk}]\n")
 UMASK_ERROR = ("demo: error: FINGERPS_UMASK='bad' is not an octal umask: use e.g. 077 (owner "
                "only, the default), 027 (group may read) or keep (the user's umask)\n")
 
@@ -75,7 +75,7 @@ def test_help_shows_the_options_and_exits_0(as_demo, capsys):
     out = capsys.readouterr().out
     assert out.startswith(USAGE)
     for option in ("--out OUT", "--bags BAGS", "--bursts BURSTS", "--rate RATE",
-                   "--figures FIGURES", "--model {lambert,hk}"):
+                   "--figures FIGURES", "--json", "--model {lambert,hk}"):
         assert option in out
     assert as_demo == []
 
@@ -84,6 +84,17 @@ def test_good_options_reach_the_demo_with_owner_only_files(as_demo, capsys):
     assert demo.main(["--bursts", "2", "--model", "lambert"]) == 0
     (args,) = as_demo
     assert (args.bursts, args.model, args.rate, args.out) == (2, "lambert", 5.0, "out/demo")
+    assert not args.json
+    assert os.umask(0o022) == 0o077  # set before the job (the fixture restores the user's)
+    assert capsys.readouterr().err == ""
+
+
+def test_the_defaults_give_a_steady_state_and_json_is_an_option(as_demo, capsys):
+    assert demo.main(["--json"]) == 0
+    (args,) = as_demo
+    # enough bursts after the first for a median and a p95, in a few seconds at the rig's rate
+    assert args.bursts == demo.BURSTS == 20 and args.json
+    assert args.bursts / args.rate <= 5.0
     assert os.umask(0o022) == 0o077  # set before the job (the fixture restores the user's)
     assert capsys.readouterr().err == ""
 

@@ -4,6 +4,7 @@ processes over DDS, with the normals checked against the simulated rig's ground 
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 from collections.abc import Callable
 from pathlib import Path
@@ -26,14 +27,26 @@ def test_demo_reconstructs_the_simulated_finger(
     demo = installed("fingerps_driver", "demo")
     run = subprocess.run(
         [str(demo), "--out", str(out), "--bags", str(bags), "--bursts", "3",
-         "--figures", str(figures_path)],
+         "--figures", str(figures_path), "--json"],
         capture_output=True, text=True, timeout=240)
     assert run.returncode == 0, f"demo failed:\n{run.stdout}\n{run.stderr}"
-    assert "fingerps demo on the simulated rig" in run.stdout
+    # --json: the summary goes to stderr, stdout ends with the figures as one JSON line
+    assert "fingerps demo on the simulated rig" in run.stderr
+    assert "  first burst (warm-up) latency   : " in run.stderr
+    assert "  steady state, bursts 2-3        : " in run.stderr
+    assert "  steady burst -> cloud latency   : median " in run.stderr
 
     figures = json.loads(figures_path.read_text())
+    assert json.loads(run.stdout.splitlines()[-1]) == figures
     assert figures["bursts_captured"] == 3
     assert figures["bursts_reconstructed"] >= 1
+    assert figures["steady_bursts_captured"] == figures["bursts_captured"] - 1
+    assert 1 <= figures["steady_bursts_reconstructed"] <= figures["steady_bursts_captured"]
+    steady = ("e2e.latency_ms_median", "e2e.latency_ms_p95", "e2e.bursts_per_s")
+    assert all(0.0 < figures[name] < math.inf for name in steady), figures
+    assert figures["e2e.latency_ms_median"] <= figures["e2e.latency_ms_p95"]
+    first = figures["e2e.first_latency_ms"]  # null only if recon_node lost the first burst
+    assert first is None or 0.0 < first < math.inf
     assert 0.0 < figures["e2e.mae_deg"] < MAE_LIMIT_DEG
     assert figures["finger_coverage"] > 0.9
     assert figures["light_direction_error_deg_max"] < 0.5

@@ -6,13 +6,23 @@ through the calibration services, captures bursts of the simulated finger, recei
 reconstructions, measures the normals' angular error against the rig's ground truth, writes
 a normal-map PNG, a depth PNG and a PLY point cloud, and stops the graph (SIGINT, so the
 recorder finalises its bag). This is a command-line tool, so its options are arguments.
+
+The summary reports the first burst's latency on its own line (it meets the warm-up; its
+cloud is awaited before the next burst is requested) and the steady state over the bursts
+after it, requested at ``--rate`` (throughput, latency median and p95;
+``demo_figures``); ``--json`` prints the same figures as one JSON line on stdout (the summary
+then on stderr), ``--figures FILE`` writes them to a file. A figure with nothing to measure
+it on (no steady burst with ``--bursts 1``) is JSON null.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import signal
 import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -30,6 +40,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 
+from fingerps_driver.demo_figures import Figure, ms, timing_figures
 from fingerps_driver.errors import DemoError
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
@@ -48,6 +59,10 @@ from fingerps_ros.time_conversion import time_nanoseconds
 # calibration also finds the LED positions, and reconstruction uses near lights.
 SPHERE_PLACEMENTS = ((2.0e-3, -1.5e-3, 0.094), (-4.0e-3, 2.0e-3, 0.092),
                      (4.5e-3, 2.5e-3, 0.097))
+
+BURSTS = 20
+"""Finger bursts by default: 4 s at the rig's 5 bursts/s, 19 of them after the first for the
+steady state's median and p95."""
 
 TOOL = CommandLineTool("demo", bad_input=(), failed=(DemoError,), error_prefix="demo: ")
 """How the demo starts and ends (fingerps_ros.command_line): a bad ``FINGERPS_UMASK`` or
@@ -276,21 +291,25 @@ def run(args: argparse.Namespace) -> int:
             np.sum(directions * rig.light_directions_ps(), axis=1), -1, 1)))
         node.set_scene("finger")
         time.sleep(0.5)  # let recon_node receive the transient-local calibration
-        capture_ms = []
-        t_first = time.monotonic()
+        capture_ms, requested, stamps = [], [], []
         period = 1.0 / args.rate if args.rate > 0 else 0.0
         for i in range(args.bursts):
-            # At the rig's rate: burst i is requested at t_first + i / rate.
-            time.sleep(max(0.0, t_first + i * period - time.monotonic()))
+            if i == 1:
+                # The first burst meets the warm-up: its cloud is awaited before the steady
+                # state starts, so that the bursts after it do not queue behind it.
+                wait_for_outputs(node.received, 1, quiet_s=40.0)
+                t_steady = time.monotonic()
+            if i >= 1:  # at the rig's rate: burst i is requested at t_steady + (i - 1) / rate
+                time.sleep(max(0.0, t_steady + (i - 1) * period - time.monotonic()))
             t0 = time.monotonic()
             response = node.call(node.capture, CaptureBurst.Request(), timeout=30.0,
                                  what="burst capture")
             if not response.success:
                 raise DemoError(f"burst capture failed: {response.message}")
             capture_ms.append((time.monotonic() - t0) * 1e3)
+            requested.append(t0)
+            stamps.append(time_nanoseconds(response.burst.header.stamp))
         wait_for_outputs(node.received, args.bursts, quiet_s=40.0)
-        with node.received.lock:
-            t_last = max(node.received.arrival.values(), default=time.monotonic())
     finally:
         codes = stop_graph(processes)
         executor.shutdown()
@@ -312,12 +331,15 @@ def run(args: argparse.Namespace) -> int:
     write_outputs(out, est, mask, r.depth[last], *r.clouds[last], r.normal_map[last])
     coverage = float((mask & truth.mask).sum() / truth.mask.sum())
     mae = float(np.mean([e.mean for e in errors]))
-    figures = {
+    with r.lock:
+        timing = timing_figures(requested, stamps, dict(r.latency_ms), dict(r.arrival))
+        dropped = r.recon_counts.get("bursts_dropped")
+    figures: dict[str, Figure | str] = {
         "bursts_requested": args.bursts,
         "bursts_captured": len(capture_ms),
         "bursts_reconstructed": len(r.clouds),
-        "e2e.bursts_per_s": len(r.clouds) / max(t_last - t_first, 1e-9),
-        "e2e.latency_ms_median": float(np.median(list(r.latency_ms.values()))),
+        "recon_bursts_dropped": dropped,
+        **timing,
         "e2e.mae_deg": mae,
         "capture_ms_median": float(np.median(capture_ms)),
         "normals_median_deg": float(np.mean([e.median for e in errors])),
@@ -330,10 +352,13 @@ def run(args: argparse.Namespace) -> int:
         **timings,
         "total_s": time.monotonic() - t_start,
     }
-    print_summary(figures, out, codes)
+    # With --json, stdout is the one JSON line (for a script) and the summary goes to stderr.
+    print_summary(figures, out, codes, stream=sys.stderr if args.json else sys.stdout)
+    if args.json:
+        print(json.dumps(json_figures(figures), allow_nan=False), flush=True)
     if args.figures:
-        import json
-        Path(args.figures).write_text(json.dumps(figures, indent=2) + "\n")
+        Path(args.figures).write_text(
+            json.dumps(json_figures(figures), indent=2, allow_nan=False) + "\n")
     bad = [name for (_, name), code in zip(GRAPH, codes, strict=True) if code != 0]
     if bad:
         TOOL.error(f"{', '.join(bad)} did not exit cleanly; see {logs}")
@@ -341,24 +366,44 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def print_summary(f: dict[str, float], out: Path, codes: list[int]) -> None:
-    """The demo's summary, for people."""
-    print(f"fingerps demo on the simulated rig (reconstruction model: {f['model']})")
-    print(f"  bursts captured / reconstructed : {f['bursts_captured']} / "
-          f"{f['bursts_reconstructed']}")
-    print(f"  normals vs ground truth (finger): mean {f['e2e.mae_deg']:.2f} deg, median "
-          f"{f['normals_median_deg']:.2f} deg, p95 {f['normals_p95_deg']:.2f} deg, "
-          f"coverage {100 * f['finger_coverage']:.0f}%")
-    print(f"  light calibration               : {f['sphere_placements']} sphere placements, "
-          f"LED positions within {f['led_position_error_mm_max']:.1f} mm, directions within "
-          f"{f['light_direction_error_deg_max']:.2f} deg of the truth")
-    print(f"  capture (service round trip)    : median {f['capture_ms_median']:.0f} ms/burst")
-    print(f"  burst -> point cloud latency    : median {f['e2e.latency_ms_median']:.0f} ms")
-    print(f"  throughput                      : {f['e2e.bursts_per_s']:.2f} bursts/s")
-    print(f"  calibration                     : flat field "
-          f"{f['calibrate_flat_field_s']:.1f} s, lights {f['calibrate_lights_s']:.1f} s")
-    print(f"  outputs                         : {out}/normal_map.png, depth.png, cloud.ply")
-    print(f"  node exit codes                 : {codes}; total {f['total_s']:.1f} s")
+def json_figures(figures: dict[str, Figure | str]) -> dict[str, Figure | str]:
+    """The figures as strict JSON takes them: a NaN or infinite figure (e.g. the LED
+    positions' error when the calibration found none) becomes None (null)."""
+    return {k: None if isinstance(v, float) and not math.isfinite(v) else v
+            for k, v in figures.items()}
+
+
+def print_summary(f: dict[str, Figure | str], out: Path, codes: list[int], *,
+                  stream=sys.stdout) -> None:
+    """The demo's summary, for people (to ``stream``)."""
+    def line(text: str) -> None:
+        print(text, file=stream)
+
+    dropped = f["recon_bursts_dropped"]
+    rate = f["e2e.bursts_per_s"]
+    line(f"fingerps demo on the simulated rig (reconstruction model: {f['model']})")
+    line(f"  bursts captured / reconstructed : {f['bursts_captured']} / "
+         f"{f['bursts_reconstructed']}"
+         + ("" if dropped is None else f" ({dropped} dropped by recon_node)"))
+    line(f"  normals vs ground truth (finger): mean {f['e2e.mae_deg']:.2f} deg, median "
+         f"{f['normals_median_deg']:.2f} deg, p95 {f['normals_p95_deg']:.2f} deg, "
+         f"coverage {100 * f['finger_coverage']:.0f}%")
+    line(f"  light calibration               : {f['sphere_placements']} sphere placements, "
+         f"LED positions within {f['led_position_error_mm_max']:.1f} mm, directions within "
+         f"{f['light_direction_error_deg_max']:.2f} deg of the truth")
+    line(f"  capture (service round trip)    : median {f['capture_ms_median']:.0f} ms/burst")
+    line(f"  first burst (warm-up) latency   : {ms(f['e2e.first_latency_ms'])}")
+    steady = ("steady state" + (f", bursts 2-{f['bursts_captured']}"
+                                if f["bursts_captured"] >= 2 else ""))
+    line(f"  {steady:<32}: {f['steady_bursts_reconstructed']} of "
+         f"{f['steady_bursts_captured']} reconstructed, throughput "
+         + ("n/a" if rate is None else f"{rate:.2f} bursts/s"))
+    line(f"  steady burst -> cloud latency   : median {ms(f['e2e.latency_ms_median'])}, "
+         f"p95 {ms(f['e2e.latency_ms_p95'])}")
+    line(f"  calibration                     : flat field "
+         f"{f['calibrate_flat_field_s']:.1f} s, lights {f['calibrate_lights_s']:.1f} s")
+    line(f"  outputs                         : {out}/normal_map.png, depth.png, cloud.ply")
+    line(f"  node exit codes                 : {codes}; total {f['total_s']:.1f} s")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -366,11 +411,16 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--bags", default="bags", help="where the session is recorded")
-    parser.add_argument("--bursts", type=int, default=5, help="finger bursts to capture")
+    parser.add_argument("--bursts", type=int, default=BURSTS,
+                        help=f"finger bursts to capture (default {BURSTS}: the first, which "
+                             "meets the warm-up, and the steady state after it)")
     parser.add_argument("--rate", type=float, default=5.0,
                         help="bursts requested per second (default 5, the paper's rig: a "
                              "burst within 0.2 s); 0 = back to back")
     parser.add_argument("--figures", help="also write the figures as JSON to this file")
+    parser.add_argument("--json", action="store_true",
+                        help="print the figures as one JSON line on stdout (the summary "
+                             "then goes to stderr)")
     parser.add_argument("--model", choices=("lambert", "hk"), default="hk",
                         help="reflectance model of the reconstruction (default hk)")
     return parser
