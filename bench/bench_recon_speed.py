@@ -26,7 +26,8 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
   views), its caches emptied: what recon_node does once per calibration and camera.
 - pipeline_lambert / pipeline_hk: ``photometric.pipeline.reconstruct_prepared`` with that
   prepared calibration, as recon_node runs it per burst (perspective integration, ridge
-  transform, points). The figures issue 10's targets are about (Lambertian <= 25 ms, HK
+  transform, points; HK: the default 3 iterations, A's fit started from the previous
+  burst's A). The figures issue 10's targets are about (Lambertian <= 25 ms, HK
   <= 80 ms); ``recon.ms.lambert_total`` / ``recon.ms.hk_total`` are hand-chained stages.
 - hk_solve / hk_total: ``solve_hk`` (10 iterations) from the Lambertian start, and the
   HK path (Lambertian path with the HK solve after the Lambertian one), distant lights.
@@ -34,16 +35,8 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
   near-light inputs, 0 and 10 iterations (tol 0); their difference over 10 is one LM
   iteration, from which ``recon.hk_kernel.*`` (flops counted in the kernel's source).
 
-Where the time goes (medians on the 2-core machine, nothing else running; ``make bench``).
-The node's path (``pipeline_*``: the calibration prepared once, 78 ms, then per burst):
-Lambertian 20 ms = checks, saturation and the finger mask ~3.5, the compiled Lambertian
-solve with its misfit ~2.7, the ridge transform ~2.4, the perspective integration ~11
-(five 432 x 480 DCT pairs, ~0.5 ms each, the rest stencils and set-up), points ~1; HK 60 ms
-= the same plus the HK solve ~36 (14 of it gathering, the initial fit and the first step;
-4.5 ms an LM iteration, ``recon.hk_kernel.*``). Before issue 10: 133 and 381 ms (numpy
-passes, the near-light directions and irradiance and the Lambertian misfit recomputed per
-burst). What is left is the integration: ``tol=1e-3`` would drop one DCT pair (~1 ms) and
-change the finger's depth by ~0.2 um RMS.
+The figures of the last ``make bench`` are in ``bench/results.json`` (native, and ``.avx2``
+with AVX-512 turned off); the README's real-time table quotes them.
 
 BLAS does only the few 3 x 3 solves of the calibration here (the per-pixel solves are numba
 kernels, the integration pocketfft and OpenCV), so OPENBLAS_CORETYPE, which selects an older,
@@ -356,10 +349,17 @@ def measure(repeats: int = RUNS) -> SpeedReport:
             led_positions_optical=rig.led_positions_optical,
             options=ReconstructionOptions(model=model, enhance=True))
 
+    # As recon_node: the HK fit of A starts from the previous burst's A (burst_reconstruction.
+    # PreparedCalibrations.hk_scale), here the A of a first, cold burst.
+    last_scale: dict[Model, float | None] = {model: None for model in Model}
+
     def pipeline(model: Model) -> object:
-        return reconstruct_prepared(burst.images, prepared_for[model],
-                                    full_scale=burst.full_scale,
-                                    options=ReconstructionOptions(model=model, enhance=True))
+        result = reconstruct_prepared(burst.images, prepared_for[model],
+                                      full_scale=burst.full_scale,
+                                      options=ReconstructionOptions(model=model, enhance=True),
+                                      hk_initial_scale=last_scale[model])
+        last_scale[model] = result.hk_scale
+        return result
 
     stage("pipeline_prepare", lambda: _uncached_prepare(prepare, Model.HK))
     prepared_for = {model: prepare(model) for model in Model}
