@@ -54,7 +54,7 @@ class WarmUp:
     def summary(self) -> str:
         """One line for a log: what happened and how long it took."""
         if not self.modules:
-            return f"no compiled kernels available (numpy only), {self.seconds:.1f} s"
+            return f"no compiled kernels available (numba missing), {self.seconds:.1f} s"
         if self.compiled:
             return (f"compiled {self.compiled} kernel version(s) in {self.seconds:.1f} s "
                     f"(first start; cached on disk for the next), loaded {self.loaded}")
