@@ -415,47 +415,57 @@ def _step_parts(j0, sums, delta0, w, parts, chunk):
     parts[chunk, 1], parts[chunk, 2], parts[chunk, 3], parts[chunk, 4] = ga, cd, dd, cw
 
 
+@serial_kernel
+def _linear_rows(n, meas, chunk, neg_tau, consts, scr, rows):
+    """For A's and rho's joint linear fit at the normals ``n``: per pixel of the chunk P.P,
+    P.C, C.C, P.I, C.I (P = e p S, C = e c_i over the lit usable measurements) into its
+    columns of ``rows`` (5, Np) float32. The scratch rows of :func:`_view_terms` must be
+    set."""
+    j0 = chunk * CHUNK
+    value_floor = consts[VALUE_FLOOR]
+    acc = np.zeros(5 * CHUNK, np.float32)
+    for k in range(meas.shape[1]):
+        block = meas[chunk, k]
+        for i in range(CHUNK):
+            j = _U(j0 + i)
+            # as in _model_sums
+            ci = (block[LX, _U(i)] * n[0, j] + block[LY, _U(i)] * n[1, j]
+                  + block[LZ, _U(i)] * n[2, j])
+            lit_f = _F1 if (ci > _F0) & (scr[_U(_SEEN + i)] > _F0) else _F0
+            g = block[G, _U(i)] * lit_f
+            em = block[E, _U(i)] * lit_f
+            ci = _fmax(ci, value_floor)
+            q = ci / (ci + scr[_U(_CR + i)])
+            p = (_F1 - _exp((_F1 / ci + scr[_U(_INV_CR + i)]) * neg_tau)) * q * g
+            c = ci * em
+            val = block[VALUE, _U(i)]
+            acc[_U(_ACC[0] + i)] += p * p
+            acc[_U(_ACC[1] + i)] += p * c
+            acc[_U(_ACC[2] + i)] += c * c
+            acc[_U(_ACC[3] + i)] += p * val
+            acc[_U(_ACC[4] + i)] += c * val
+    for row in range(5):
+        off = row * CHUNK
+        for i in range(CHUNK):
+            rows[row, _U(j0 + i)] = acc[_U(off + i)]
+
+
 @parallel_kernel
 def linear_sums(n, meas, views, neg_tau, consts, rows, parts):
-    """For A's and rho's joint linear fit at the normals ``n``: per pixel P.P, P.C, C.C, P.I,
-    C.I into ``rows`` (5, Np) float32 (P = e p S, C = e c_i over the lit usable
-    measurements), and per chunk the parts of the fit's numerator sum (P.I - P.C C.I / C.C)
-    and denominator sum (P.P - (P.C)^2 / C.C) into ``parts`` (chunks, 2) float64."""
-    value_floor = consts[VALUE_FLOOR]
+    """The per-pixel sums of A's and rho's joint linear fit (:func:`_linear_rows`) into
+    ``rows``, and per chunk the parts of the fit's numerator sum (P.I - P.C C.I / C.C) and
+    denominator sum (P.P - (P.C)^2 / C.C) into ``parts`` (chunks, 2) float64."""
     for chunk in prange(parts.shape[0]):
         j0 = chunk * CHUNK
         scr = np.empty(_SCRATCH, np.float32)
-        acc = np.zeros(5 * CHUNK, np.float32)
         _view_terms(n, views, j0, consts, scr)
-        for k in range(meas.shape[1]):
-            block = meas[chunk, k]
-            for i in range(CHUNK):
-                j = _U(j0 + i)
-                # as in _model_sums
-                ci = (block[LX, _U(i)] * n[0, j] + block[LY, _U(i)] * n[1, j]
-                      + block[LZ, _U(i)] * n[2, j])
-                lit_f = _F1 if (ci > _F0) & (scr[_U(_SEEN + i)] > _F0) else _F0
-                g = block[G, _U(i)] * lit_f
-                em = block[E, _U(i)] * lit_f
-                ci = _fmax(ci, value_floor)
-                q = ci / (ci + scr[_U(_CR + i)])
-                p = (_F1 - _exp((_F1 / ci + scr[_U(_INV_CR + i)]) * neg_tau)) * q * g
-                c = ci * em
-                val = block[VALUE, _U(i)]
-                acc[_U(_ACC[0] + i)] += p * p
-                acc[_U(_ACC[1] + i)] += p * c
-                acc[_U(_ACC[2] + i)] += c * c
-                acc[_U(_ACC[3] + i)] += p * val
-                acc[_U(_ACC[4] + i)] += c * val
-        for row in range(5):
-            off = row * CHUNK
-            for i in range(CHUNK):
-                rows[row, _U(j0 + i)] = acc[_U(off + i)]
+        _linear_rows(n, meas, chunk, neg_tau, consts, scr, rows)
         num = den = 0.0
         for i in range(CHUNK):
-            pp, pc = float(acc[_U(_ACC[0] + i)]), float(acc[_U(_ACC[1] + i)])
-            cc = _fmax(float(acc[_U(_ACC[2] + i)]), 1e-30)
-            num += float(acc[_U(_ACC[3] + i)]) - pc * float(acc[_U(_ACC[4] + i)]) / cc
+            j = _U(j0 + i)
+            pp, pc = float(rows[0, j]), float(rows[1, j])
+            cc = _fmax(float(rows[2, j]), 1e-30)
+            num += float(rows[3, j]) - pc * float(rows[4, j]) / cc
             den += pp - pc * pc / cc
         parts[chunk, 0] = num
         parts[chunk, 1] = den
@@ -463,21 +473,25 @@ def linear_sums(n, meas, views, neg_tau, consts, rows, parts):
 
 @parallel_kernel
 def start(n, rho, lam, rows, scale, a_tau, neg_tau, meas, views, consts, sums, delta0, w,
-          parts):
-    """rho in closed form for A = ``scale`` (float64) at the initial normals (from ``rows``
-    of :func:`linear_sums`), the pixels' sums there and their first step. Per chunk into
-    ``parts`` (chunks, 5) float64: the cost and the Schur parts (:func:`_step_parts`)."""
+          parts, rows_given):
+    """rho in closed form for A = ``scale`` (float64) at the initial normals -- from
+    ``rows`` of :func:`linear_sums` if ``rows_given``, else formed here, chunk by chunk (A
+    known beforehand: one pass over the measurements less) --, the pixels' sums there and
+    their first step. Per chunk into ``parts`` (chunks, 5) float64: the cost and the Schur
+    parts (:func:`_step_parts`)."""
     a = np.float32(scale)
     for chunk in prange(parts.shape[0]):
         j0 = chunk * CHUNK
         scr = np.empty(_SCRATCH, np.float32)
+        _view_terms(n, views, j0, consts, scr)
+        if not rows_given:
+            _linear_rows(n, meas, chunk, neg_tau, consts, scr, rows)
         for i in range(CHUNK):
             j = _U(j0 + i)
             pc, cc, c_i = float(rows[1, j]), float(rows[2, j]), float(rows[4, j])
             fitted = _fmax((c_i - scale * pc) / _fmax(cc, 1e-30), 0.0)
             kept = float(rho[j])
             rho[j] = fitted if cc > 0.0 else kept
-        _view_terms(n, views, j0, consts, scr)
         _model_sums(n, rho, chunk, a, a_tau, neg_tau, meas, consts, scr,
                     np.empty(N_SUMS * CHUNK, np.float32), sums)
         _steps(j0, sums, lam, consts, delta0, w)

@@ -427,13 +427,14 @@ def _minimise(
     """
     # A and every rho jointly by linear least squares, normals fixed: with the per-pixel
     # sums PP, PC, CC, PI, CI, rho_j(A) = (CI - A PC) / CC and
-    # A = sum_j (PI - PC CI / CC) / sum_j (PP - PC^2 / CC). Then rho for the initial A.
-    num, den = passes.linear()
+    # A = sum_j (PI - PC CI / CC) / sum_j (PP - PC^2 / CC). Then rho for the initial A
+    # (an A given: the start forms the per-pixel sums itself, without the global ones).
     if scale is None:
+        num, den = passes.linear()
         a_scale = max(num / den, 0.0) if den > 0 else 0.0
     else:
         a_scale = float(scale)
-    total, *schur = passes.start(a_scale, fit=fit)
+    total, *schur = passes.start(a_scale, fit=fit, rows_given=scale is None)
     lam_scale = _LAMBDA_START
     history = [total]
     done = 0
@@ -483,7 +484,8 @@ class _Passes:
     fixed order. Each pass returns its global sums: ``linear`` the numerator and
     denominator of A's linear fit; ``start`` and ``commit`` the total cost and the Schur
     parts (P.r, (J^T P).delta0, P.P, (J^T P).w); ``candidate`` the parts of the choice at
-    the trial A (chosen cost, P.r, P.P), or nothing if A is fixed. ``data``: (meas, views)
+    the trial A (chosen cost, P.r, P.P), or nothing if A is fixed (``start`` forms the
+    linear fit's per-pixel sums itself unless ``linear`` did). ``data``: (meas, views)
     (:func:`_solve`); ``n`` (3, Np) and ``rho`` (Np,) float32 the initial
     state."""
 
@@ -525,11 +527,11 @@ class _Passes:
         self.kernel.linear_sums(self.n, *self.data, self.neg_tau, self.consts, self.rows, parts)
         return [float(v) for v in parts.sum(axis=0)]
 
-    def start(self, scale: float, *, fit: bool) -> list[float]:
+    def start(self, scale: float, *, fit: bool, rows_given: bool) -> list[float]:
         parts = self._parts(5)
         self.kernel.start(self.n, self.rho, self.lam, self.rows, float(scale),
                           self._a_tau(scale), self.neg_tau, *self.data, self.consts,
-                          self.sums, self.delta0, self.w, parts)
+                          self.sums, self.delta0, self.w, parts, rows_given)
         total = [float(v) for v in parts.sum(axis=0)]
         return total if fit else total[:1]
 
