@@ -63,8 +63,10 @@ def _path_on_the_shaft(rig: SimulatedRig, a: np.ndarray, b: np.ndarray) -> float
 #   6e-12 with h perturbed by +-1 ulp); allowing 32 ulps through h's ~30 operations: 2e-10;
 # - a stop of the secant search flipped by rounding (|f| against 1e-12 m) leaves one step
 #   more or less: measured <= 8.6e-11 (tolerance 1e-13 instead);
-# so 5e-10 on the unit normal's components. A change of the geometry is far above it: 1 ppm
-# more finger radius, tip elongation, ridge height or period moves them by 1.5e-7 .. 3e-5.
+# so 5e-10 on the unit normal's components (a bound, not an estimate: on an AVX-512 machine,
+# AVX-512 off with tools/no_avx512_env.sh moves them by 6.4e-15). A change of the geometry is
+# far above it: 1 ppm more finger radius, tip elongation, ridge height or period moves them
+# by 1.5e-7 .. 3e-5.
 _NORMALS_ATOL = 5e-10
 
 
