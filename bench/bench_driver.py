@@ -2,7 +2,10 @@
 
 Median and worst burst capture time over 30 bursts (after a warm-up that fills the
 simulated rig's render cache), and the sustained rate of back-to-back bursts. No ROS:
-this is the capture path the driver node calls; publishing is measured end to end.
+this is the capture path the driver node calls; publishing is measured end to end. Its
+parts: the median ``set_leds`` round trip over the pty (``driver.set_leds_ms.median``, 300
+switches) and the median render of one frame from the filled cache
+(``driver.render_ms.median``, 35 frames).
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from fingerps_driver.capture.burst import capture_burst
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 
 BURSTS = 30
+SWITCHES = 300
+RENDERS = 35
 
 
 def run() -> dict[str, float]:
@@ -40,8 +45,21 @@ def run() -> dict[str, float]:
             durations.append(result.duration_s * 1e3)
         elapsed = time.perf_counter() - start
         camera.close()
+        switches = []
+        for i in range(SWITCHES):
+            t0 = time.perf_counter()
+            board.set_leds(1 << (i % rig.led_count))
+            switches.append((time.perf_counter() - t0) * 1e3)
+        board.all_off()
+    renders = []
+    for i in range(RENDERS):
+        t0 = time.perf_counter()
+        rig.render(Scene.FINGER, [i % rig.led_count], rng=rng)
+        renders.append((time.perf_counter() - t0) * 1e3)
     return {
         "driver.burst_ms.median": float(np.median(durations)),
         "driver.burst_ms.max": float(np.max(durations)),
         "driver.bursts_per_s": BURSTS / elapsed,
+        "driver.set_leds_ms.median": float(np.median(switches)),
+        "driver.render_ms.median": float(np.median(renders)),
     }

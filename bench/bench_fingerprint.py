@@ -44,6 +44,8 @@ Figures per model (``fingerprint.<model>.*``):
   (both kinds) vs ``impostor_max`` (target: every genuine above every impostor); ``eer_pct``
   and ``fnmr_at_fmr1_pct`` over all genuine and impostor scores;
 - ``print_ms_median``: ``rolled_print``'s ``timings_ms['total']`` per burst;
+- ``fingerprint.generate_s.median``: ``generate_fingerprint`` of one whorl (20 x 25 mm at
+  500 ppi), median of ``GENERATIONS`` runs;
 - diagnosis of the scale: ``fingerprint.truth_surface.scale_err_pct_median``, the same fit
   for prints of the rig's TRUE depth and normals (capture 0 of each finger: the unrolling's
   own share), and ``margin_sag_ratio``, the reconstructed depth's sag below the apex over
@@ -80,7 +82,11 @@ from figures_report import print_figures
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_driver.simulation.fingerprint_pattern import FingerprintPattern
+from fingerps_driver.simulation.fingerprint_orientation import PatternClass
+from fingerps_driver.simulation.fingerprint_pattern import (
+    FingerprintPattern,
+    generate_fingerprint,
+)
 from fingerps_recon.errors import RolledPrintError
 from fingerps_recon.photometric.pipeline import (
     Model,
@@ -98,6 +104,7 @@ MATCH_MM = 0.3
 BORDER_MM = 1.0
 SINGULAR_ZONE_MM = 1.5
 MARGIN_TILT_DEG = 40.0
+GENERATIONS = 3
 MODELS = (Model.HK, Model.LAMBERT)
 SEED = 12
 TARGETS = {"scale_err_pct_median": 2.0, "recall": 0.85, "precision": 0.85, "nfiq2_median": 50}
@@ -287,6 +294,16 @@ def error_rates(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float
     return eer, float(fnmr[ok].min()) if ok.any() else 1.0
 
 
+def generation_s() -> float:
+    """Median seconds of ``generate_fingerprint`` of one whorl over ``GENERATIONS`` runs."""
+    times = []
+    for seed in range(GENERATIONS):
+        t0 = time.perf_counter()
+        generate_fingerprint(3 + seed, pattern_class=PatternClass.WHORL)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
 def run() -> dict[str, float]:
     """Run the benchmark, print its table, return the ``fingerprint.*`` figures."""
     t_start = time.perf_counter()
@@ -368,6 +385,7 @@ def run() -> dict[str, float]:
             np.median([t[key] for t in truth_minutiae]))
     figures["fingerprint.identities"] = float(IDENTITIES)
     figures["fingerprint.captures"] = float(IDENTITIES * CAPTURES)
+    figures["fingerprint.generate_s.median"] = generation_s()
     figures["fingerprint.seconds"] = time.perf_counter() - t_start
     _table(figures)
     return figures
@@ -512,6 +530,7 @@ def _table(f: dict[str, float]) -> None:
           f"{f['fingerprint.truth.recall_median']:.2f} / "
           f"{f['fingerprint.truth.precision_median']:.2f}; prints of the true surfaces: "
           f"scale error median {f['fingerprint.truth_surface.scale_err_pct_median']:.2f} %; "
+          f"one finger generated in {f['fingerprint.generate_s.median']:.2f} s (median); "
           f"{f['fingerprint.seconds']:.0f} s in all")
     for m in MODELS:
         p = f"fingerprint.{m.value}."

@@ -153,3 +153,15 @@ def machine_figures(switches: Mapping[str, str]) -> dict[str, str | float]:
                                                                   ""),
         "machine.avx2_run.opencv_cpu_disable": switches.get("OPENCV_CPU_DISABLE", ""),
     }
+
+
+def main() -> int:
+    """Print the AVX2 run's switches as ``export NAME='value'`` lines, for a shell to
+    evaluate (``tools/no_avx512_env.sh``)."""
+    for name, value in avx2_switches().items():
+        print(f"export {name}='{value}'")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -2,8 +2,6 @@
 
 import os
 import signal
-import statistics
-import time
 
 import pytest
 
@@ -177,18 +175,17 @@ def test_link_path_never_clobbers_a_regular_file(tmp_path):
     assert path.read_text() == "keep me"
 
 
-def test_set_leds_round_trip_latency(board, emulator):
-    for _ in range(20):  # warm up
-        board.set_leds(1)
-    durations = []
-    for i in range(300):
-        start = time.perf_counter()
-        board.set_leds(1 << (i % 7))
-        durations.append(time.perf_counter() - start)
-    median_ms = statistics.median(durations) * 1e3
-    p95_ms = sorted(durations)[int(0.95 * len(durations))] * 1e3
-    print(f"\nset_leds round trip on the pty: median {median_ms:.3f} ms, p95 {p95_ms:.3f} ms")
-    assert median_ms < 5.0
+def test_set_leds_round_trips_are_acknowledged_in_order_without_resends(board, emulator):
+    # The round trip's time is a benchmark figure (bench/bench_driver.py,
+    # driver.set_leds_ms.median); here: one request per switch, each acknowledged and
+    # applied in order.
+    requests = emulator.request_count
+    masks = [1 << (i % 7) for i in range(300)]
+    acknowledged = [board.set_leds(mask) for mask in masks]
+    assert acknowledged == masks
+    assert emulator.request_count - requests == len(masks)
+    assert [mask for _, mask in emulator.history[-100:]] == masks[-100:]
+    assert emulator.lit_mask == masks[-1]
     assert board.resends == 0
 
 

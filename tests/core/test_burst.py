@@ -85,8 +85,7 @@ def test_burst_frames_are_tagged_with_the_led_actually_lit(rig):
     assert masks_lit_since(rig.emulator.history, start) == [1 << i for i in LEDS] + [0]
     assert repeats_since(rig.emulator.history, start) <= rig.board.resends - resends
     assert rig.emulator.lit_mask == 0
-    print(f"\nburst of 7 frames + dark over the pty: {result.duration_s * 1e3:.1f} ms")
-    assert result.duration_s < 1.0  # ~5 ms when idle; the 0.2 s budget is not a CI bound
+    assert result.duration_s > 0.0  # measured; its size is bench/bench_driver.py's burst_ms
 
 
 def test_order_levels_and_exposures_are_applied_and_tagged(rig):

