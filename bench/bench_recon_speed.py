@@ -26,8 +26,8 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
   views), its caches emptied: what recon_node does once per calibration and camera.
 - pipeline_lambert / pipeline_hk: ``photometric.pipeline.reconstruct_prepared`` with that
   prepared calibration, as recon_node runs it per burst (perspective integration, ridge
-  transform, points; HK: the default 3 iterations, A's fit started from the previous
-  burst's A). The figures issue 10's targets are about (Lambertian <= 25 ms, HK
+  transform, points; HK: A's fit started from the previous burst's A, as recon_node
+  does). The figures issue 10's targets are about (Lambertian <= 25 ms, HK
   <= 80 ms); ``recon.ms.lambert_total`` / ``recon.ms.hk_total`` are hand-chained stages.
 - hk_solve / hk_total: ``solve_hk`` (10 iterations) from the Lambertian start, and the
   HK path (Lambertian path with the HK solve after the Lambertian one), distant lights.
