@@ -10,7 +10,8 @@ per light and pixel): the rows a_k = e_k l_k come made, once per calibration, as
 (K, 3, H, W) or constants (K, 3, 1, 1) (:func:`photometric.lambertian.light_rows`), NaN
 where light k is not usable at a pixel. The image rectangle is cut into chunks of at most
 ``CHUNK`` pixels of one row (each chunk narrowed to its first and last mask pixel, empty ones
-skipped), dealt out to numba's threads (``prange``). Per chunk, light by light, the nine
+skipped, its loops' window widened to a multiple of 16 pixels so that no scalar remainder
+loop is left), dealt out to numba's threads (``prange``). Per chunk, light by light, the nine
 sums of A and r are accumulated in float32 for every pixel of the chunk in a loop over
 consecutive pixels without branches (selects) that reads the image row and the three row
 planes where they are (no copy into a scratch), which LLVM vectorises (8 pixels at a time
@@ -50,6 +51,9 @@ from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric
 # Pixels per chunk (a chunk's nine float32 sums, its scratch and its pixels' inputs stay in
 # the core's L1/L2 cache, whatever the number of lights).
 CHUNK = 256
+# Pixels the per-pixel loops run over come in multiples of this (two AVX2 vectors of float32,
+# one AVX-512 one): the loops have no scalar remainder. CHUNK is a multiple of it.
+_LANES = 16
 
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
 _U = numba.uint64
@@ -128,11 +132,14 @@ def _span(chunk, r0, c0, c1, mask):
 
 
 @inline_kernel
-def _accumulate(images, rows, mask, r, start, m, lo, hi, scr, acc):
-    """The chunk's normal equations: per pixel, A (upper triangle), r = sum a_k I_k and the
-    count of used lights into ``acc`` (zero on entry), light by light."""
+def _accumulate(images, rows, mask, r, start, m, offset, span, lo, hi, scr, acc):
+    """The chunk's normal equations: per pixel of the window (columns start ... start +
+    m - 1), A (upper triangle), r = sum a_k I_k and the count of used lights into ``acc``
+    (zero on entry), light by light; only the mask pixels of the chunk's own span (window
+    pixels offset ... offset + span - 1) count as inside."""
     for i in range(m):
-        scr[_U(_IN + i)] = _F1 if mask[r, _U(start + i)] else _F0
+        own = (i >= offset) & (i < offset + span)
+        scr[_U(_IN + i)] = _F1 if own and mask[r, _U(start + i)] else _F0
     for k in range(images.shape[0]):
         image = images[k, r]
         if rows.shape[2] > 1 or rows.shape[3] > 1:
@@ -147,7 +154,7 @@ def _accumulate(images, rows, mask, r, start, m, lo, hi, scr, acc):
 
 
 @inline_kernel
-def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
+def _solve_pixels(r, start, m, offset, span, min_det, acc, scr, normals, albedo, valid, used):
     """Per pixel of the chunk: b = A^-1 r by the adjugate, the degenerate test, rho = |b|,
     n = b / rho into the scratch rows _BX ... _RHO (vectorised), then into the result
     images."""
@@ -174,7 +181,7 @@ def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
         scr[_U(_NY + i)] = by * inv_rho if ok else _F0
         scr[_U(_NZ + i)] = bz * inv_rho if ok else _F0
         scr[_U(_RHO + i)] = rho if ok else _F0
-    for i in range(m):
+    for i in range(offset, offset + span):  # the span's pixels only
         c = _U(start + i)
         normals[r, c, 0] = scr[_U(_NX + i)]
         normals[r, c, 1] = scr[_U(_NY + i)]
@@ -246,13 +253,19 @@ def solve(images, rows, mask, box, lo, hi, min_det, normals, albedo, valid, used
         them up in order, so that the totals do not depend on the threads).
     """
     for chunk in prange(parts.shape[0]):
-        r, start, m = _span(chunk, box[0], box[2], box[3], mask)
-        if m == 0:
+        r, first, span = _span(chunk, box[0], box[2], box[3], mask)
+        if span == 0:
             continue
+        # The loops run over a window of a multiple of _LANES pixels holding the span (no
+        # scalar remainder loop), moved left where the image row ends.
+        m = min((span + _LANES - 1) // _LANES * _LANES, mask.shape[1])
+        start = min(first, mask.shape[1] - m)
+        offset = first - start
         scr = np.empty(_SCRATCH, np.float32)
         acc = np.zeros(_SUMS, np.float32)
-        _accumulate(images, rows, mask, r, start, m, lo, hi, scr, acc)
-        _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used)
+        _accumulate(images, rows, mask, r, start, m, offset, span, lo, hi, scr, acc)
+        _solve_pixels(r, start, m, offset, span, min_det, acc, scr, normals, albedo, valid,
+                      used)
         _misfit(images, rows, r, start, m, lo, hi, scr, acc, parts, chunk)
 
 
