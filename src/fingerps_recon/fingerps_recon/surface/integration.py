@@ -83,6 +83,7 @@ Metric scale of points comes from the camera intrinsics and the working distance
 from __future__ import annotations
 
 from enum import Enum
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -109,6 +110,7 @@ EXACT_TOL = 1e-6
 # saved on a 432 x 480 DCT (~0.8 ms); one thread leaves the other core to the rest of the node.
 _FFT_WORKERS = 1
 _CROSS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=np.float32)
+_MINUS_CROSS = -_CROSS
 
 
 class IntegrationMethod(Enum):
@@ -502,18 +504,13 @@ def _pcg_box(
     degree *= inside
 
     def laplacian(v: np.ndarray) -> np.ndarray:
-        av = cv2.filter2D(v, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
+        # degree * v - (sum of the inside neighbours), v zero outside: three passes
+        av = cv2.filter2D(v, -1, _MINUS_CROSS, borderType=cv2.BORDER_CONSTANT)
         av *= inside
-        np.subtract(degree * v, av, out=av)
+        cv2.accumulateProduct(degree, v, av)
         return av
 
-    # Eigenvalues of the rectangle's 4-neighbour Neumann Laplacian in the DCT-II basis.
-    ev = (2.0 - 2.0 * np.cos(np.pi * np.arange(shape[0]) / shape[0]))[:, None] + (
-        2.0 - 2.0 * np.cos(np.pi * np.arange(shape[1]) / shape[1])
-    )[None, :]
-    ev[0, 0] = 1.0
-    inv_ev = (1.0 / ev).astype(np.float32)
-    inv_ev[0, 0] = 0.0  # the constant mode is free
+    inv_ev = _inverse_eigenvalues(shape)
 
     def precondition(res: np.ndarray) -> np.ndarray:
         spec = scipy.fft.dctn(res, type=2, norm="ortho", workers=_FFT_WORKERS)
@@ -542,6 +539,21 @@ def _pcg_box(
     return None
 
 
+@lru_cache(maxsize=4)
+def _inverse_eigenvalues(shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) float32 inverse eigenvalues of the h x w rectangle's 4-neighbour Neumann
+    Laplacian in the DCT-II basis, 0 for the constant mode (free); read-only, kept for the
+    next burst of the same box size."""
+    ev = (2.0 - 2.0 * np.cos(np.pi * np.arange(shape[0]) / shape[0]))[:, None] + (
+        2.0 - 2.0 * np.cos(np.pi * np.arange(shape[1]) / shape[1])
+    )[None, :]
+    ev[0, 0] = 1.0
+    inv_ev = (1.0 / ev).astype(np.float32)
+    inv_ev[0, 0] = 0.0  # the constant mode is free
+    inv_ev.setflags(write=False)
+    return inv_ev
+
+
 def _labels(mask: np.ndarray) -> tuple[np.ndarray | None, int]:
     """4-connected component labels 0..n-1 of the mask pixels (None if there is one)."""
     n_labels, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=4)
@@ -557,9 +569,10 @@ def _subtract_component_means(
 
     Values outside the mask are left as they are.
     """
-    if labels is None:
-        total = values.sum(where=mask, dtype=np.float64)
-        values -= np.float32(total / np.count_nonzero(mask)) * mask
+    if labels is None:  # one pass for the mean, one for the subtraction (OpenCV, masked)
+        inside = mask.view(np.uint8)
+        mean = cv2.mean(values, mask=inside)[0]
+        cv2.subtract(values, mean, dst=values, mask=inside)
         return
     inner = values[mask]
     sums = np.bincount(labels, weights=inner, minlength=n_comp)
