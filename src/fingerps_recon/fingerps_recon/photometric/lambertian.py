@@ -202,9 +202,10 @@ def solve_lambertian(
     the rest, a_k = e_k l_k (:func:`light_rows`), give b = rho n = A^-1 sum_k a_k I_k,
     A = sum_k a_k a_k^T (the least-squares solution pinv(L_used) I_used). Pixels with fewer
     than 3 usable lights, or whose usable lights are degenerate (nearly coplanar
-    directions), are marked invalid rather than guessed. The sign of n_z is not forced. Float32 arithmetic; distant and near
-    lights go through the same compiled loop (:mod:`photometric.lambertian_kernel`), in
-    at most two threads, over the mask's bounding box only.
+    directions), are marked invalid rather than guessed. The sign of n_z is not forced.
+    Float32 arithmetic; distant and near lights go through the same compiled loop
+    (:mod:`photometric.lambertian_kernel`), in at most two threads, over the mask's
+    bounding box only.
 
     Parameters
     ----------
