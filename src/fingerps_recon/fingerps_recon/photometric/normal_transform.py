@@ -70,17 +70,22 @@ def enhance_ridges(
     else:
         box = (slice(0, h), slice(0, w_img))
         m = None
-    x, y, z = cv2.split(np.ascontiguousarray(n[box], dtype=dtype))  # new planes
+    block = np.ascontiguousarray(n[box], dtype=dtype)
+    x, y, z = cv2.split(block)  # new planes
     # Pixels without a normal (outside the mask, zero or not finite) are zero: they are no
     # neighbours (normalised convolution: the sum is normalised to a direction, so no
     # division by the count is needed) and give zero output.
-    with np.errstate(invalid="ignore"):
-        finite = np.abs(x + y + z) < np.inf  # False for NaN and inf
-    keep = finite if m is None else finite & m
-    if not keep.all():
+    if cv2.checkRange(block)[0]:  # all finite (one pass, the usual case)
+        finite = None
+        keep = m
+    else:
+        with np.errstate(invalid="ignore"):
+            finite = np.abs(x + y + z) < np.inf  # False for NaN and inf
+        keep = finite if m is None else finite & m
+    if keep is not None and not keep.all():
         for c in (x, y, z):
             c *= keep
-        if not finite.all():
+        if finite is not None and not finite.all():
             for c in (x, y, z):
                 c[~finite] = 0  # NaN * 0 is NaN
     has_normal = (x != 0) | (y != 0) | (z != 0)

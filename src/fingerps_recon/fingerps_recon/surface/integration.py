@@ -799,18 +799,26 @@ def depth_to_points(
     fx, s, cx = k[0]
     fy, cy = k[1, 1], k[1, 2]
     h, w = depth.shape
+    keep = np.zeros((h, w), dtype=bool)
+    box = mask_bounding_box(m)
+    if box is None:
+        return np.empty((0, 3), dtype=np.float32), np.empty(0, dtype=np.int64)
+    # Everything on the mask's bounding box only: planes there, then one gather each
+    # (raster order in the box is raster order in the image).
+    z = depth[box].astype(np.float32, copy=False)
     with np.errstate(invalid="ignore"):
-        keep = m & (depth > 0) & (depth < np.inf)  # NaN compares False
+        kept = m[box] & (z > 0) & (z < np.inf)  # NaN compares False
+    keep[box] = kept
     index = np.flatnonzero(keep)
-    z = depth.astype(np.float32, copy=False)
-    y_row = ((np.arange(h) - cy) / fy).astype(np.float32)[:, None]  # y_n per image row
-    x_col = ((np.arange(w) - cx) / fx).astype(np.float32)  # x_n per column, without skew
+    rows, cols = box
+    y_row = ((np.arange(rows.start, rows.stop) - cy) / fy).astype(np.float32)[:, None]  # y_n
+    x_col = ((np.arange(cols.start, cols.stop) - cx) / fx).astype(np.float32)  # x_n, no skew
     points = np.empty((index.size, 3), dtype=np.float32)
-    y = z * y_row  # whole-image planes, then one gather each: cheaper than gathering u, v
-    points[:, 1] = y.ravel()[index]
+    y = z * y_row
+    points[:, 1] = y[kept]
     x = z * x_col
     if s != 0.0:
         x -= np.float32(s / fx) * y
-    points[:, 0] = x.ravel()[index]
-    points[:, 2] = z.ravel()[index]
+    points[:, 0] = x[kept]
+    points[:, 2] = z[kept]
     return points, index.astype(np.int64, copy=False)
