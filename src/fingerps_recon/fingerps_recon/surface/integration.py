@@ -95,6 +95,7 @@ import scipy.sparse.linalg
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.mask_box import mask_bounding_box
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
+from fingerps_recon.surface.integration_kernel import log_depth_steps
 
 _SMALL_COMPONENT = 2048
 
@@ -241,9 +242,7 @@ def integrate_normals_perspective(
     box = mask_bounding_box(m)
     if box is None:
         return depth
-    du, dv = _log_depth_steps(
-        n[box], m[box], k, origin=(box[0].start, box[1].start), min_nz=float(min_nz)
-    )
+    du, dv = _log_depth_steps(n, m, k, box, min_nz=float(min_nz))
     if method is IntegrationMethod.EXACT:
         du, dv = du.astype(np.float64), dv.astype(np.float64)
     log_depth = _solve(du, dv, m[box], method=method, tol=tol, max_iter=max_iter)
@@ -349,35 +348,28 @@ def _log_depth_steps(
     normals: np.ndarray,
     mask: np.ndarray,
     camera_matrix: np.ndarray,
+    box: tuple[slice, slice],
     *,
-    origin: tuple[int, int],
     min_nz: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Steps of log depth per column and per row (module docstring), float32.
-
-    ``origin`` is the (row, column) of ``normals[0, 0]`` in the full image.
-    """
+    """Steps of log depth per column and per row (module docstring), float32, on ``box``
+    of the (H, W, 3) ``normals`` and (H, W) ``mask``: one compiled pass
+    (:func:`surface.integration_kernel.log_depth_steps`)."""
     fx, s, cx = (float(c) for c in camera_matrix[0])
     fy, cy = float(camera_matrix[1, 1]), float(camera_matrix[1, 2])
-    h, w = mask.shape
-    y_n = ((np.arange(h) + origin[0] - cy) / fy)[:, None]  # (h, 1)
-    x_n = (np.arange(w) + origin[1] - cx)[None, :] / fx  # (1, w), or (h, w) with skew
+    rows, cols = box
+    h, w = rows.stop - rows.start, cols.stop - cols.start
+    y_n = (np.arange(rows.start, rows.stop) - cy) / fy  # (h,)
+    x_n = ((np.arange(cols.start, cols.stop) - cx) / fx)[None, :]  # (1, w), (h, w) with skew
     if s != 0.0:
-        x_n = x_n - (s / fx) * y_n
-    y_n = y_n.astype(np.float32)
-    x_n = x_n.astype(np.float32)
-    ray_norm = x_n * x_n + y_n * y_n  # (h, w)
-    ray_norm += np.float32(1.0)
-    np.sqrt(ray_norm, out=ray_norm)
-    nx, ny, nz, norm, usable = _components_f32(normals, mask)
-    den = nz - nx * x_n
-    den += ny * y_n
-    norm *= np.float32(min_nz) * ray_norm
-    np.maximum(den, norm, out=den)
-    den *= np.float32(fx)
-    num_v = ny if s == 0.0 else ny + np.float32(s / fx) * nx
-    num_v *= np.float32(-fx / fy)
-    return _divided(nx, num_v, den, usable)
+        x_n = x_n - (s / fx) * y_n[:, None]
+    du = np.empty((h, w), dtype=np.float32)
+    dv = np.empty((h, w), dtype=np.float32)
+    f32 = np.float32
+    log_depth_steps(np.ascontiguousarray(normals, dtype=f32), np.ascontiguousarray(mask),
+                    rows.start, cols.start, x_n.astype(f32), y_n.astype(f32), f32(s / fx),
+                    f32(min_nz), f32(fx), f32(fy), du, dv)
+    return du, dv
 
 
 # ----------------------------------------------------------------------------- solvers
