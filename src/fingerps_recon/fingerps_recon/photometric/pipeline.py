@@ -459,14 +459,16 @@ def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
     return depth, height, points, index
 
 
-# Image dtypes used as they are (the solvers read them; integers are exact in float32).
-_NATIVE_IMAGES = (np.uint8, np.uint16, np.float32)
+# Image dtypes used as they are (the solvers read them; integers are exact in float32):
+# the two the kernel warm-up compiles (photometric.kernel_warm_up), so that no burst waits
+# for a compilation; others (uint16 too) become float32.
+_NATIVE_IMAGES = (np.uint8, np.float32)
 
 
 def _checked_stack(images: np.ndarray, light_count: int, *, full_scale: float,
                    shadow_fraction: float) -> tuple[np.ndarray, np.ndarray]:
-    """The burst as a (K, H, W) uint8, uint16 or float32 array (the input itself when it is
-    one of those, else a float32 copy; never modified) and each image's largest value (K,),
+    """The burst as a (K, H, W) uint8 or float32 array (the input itself when it is one of
+    those, else a float32 copy; never modified) and each image's largest value (K,),
     or a FingerpsReconError saying what is wrong with it (shape, count, NaN, dark images).
     Integers need no finiteness test; floats are tested by their per-image maximum (NaN
     and +inf show there) and minimum (-inf): reductions without temporaries."""
