@@ -46,6 +46,7 @@ import bench_driver
 import bench_driver_publish
 import bench_e2e
 import bench_fingerprint
+import bench_many_lights
 import bench_recon_accuracy
 import bench_recon_publish
 import bench_recon_speed
@@ -56,7 +57,8 @@ SEPARATE_PREFIXES = ("soak.",)
 """Figures of benchmarks not in ``make bench`` (``make soak``), kept when it rewrites the file."""
 
 BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_publish,
-              bench_recon_accuracy, bench_calib, bench_e2e, bench_fingerprint)
+              bench_recon_accuracy, bench_many_lights, bench_calib, bench_e2e,
+              bench_fingerprint)
 
 AVX2_SUFFIX = ".avx2"
 

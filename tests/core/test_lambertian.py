@@ -11,7 +11,9 @@ from fingerps_recon.photometric import kernel_threads
 from fingerps_recon.photometric.angular_error import angular_error_deg
 from fingerps_recon.photometric.lambertian import (
     LambertianResult,
+    LightRows,
     lambertian_shading,
+    light_rows,
     solve_lambertian,
 )
 
@@ -431,3 +433,47 @@ def test_lights_beyond_a_byte_count_in_uint16() -> None:
     assert res.used_lights.dtype == np.uint16 and lit.max() > 255
     np.testing.assert_array_equal(res.used_lights[mask], lit[mask])
     assert np.nanmax(angular_error_deg(res.normals, normals, mask=res.valid)) < 0.1
+
+
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_light_rows_made_once_solve_as_the_lights_do(per_pixel: bool) -> None:
+    # The pipeline makes the rows a_k = e_k l_k once per calibration (LightRows): the solve
+    # from them is the solve from the lights and intensities, value for value (the same
+    # float32 rows, the same sums).
+    normals, mask = _sphere(41)
+    e = np.array([1.0, 0.5, 2.0, 1.3, 0.8, 1.1, 0.6])
+    images = (_render(normals, 0.7, LIGHTS) * e[:, None, None]).astype(np.float32)
+    lights = (np.ascontiguousarray(np.broadcast_to(LIGHTS[:, None, None, :], (7, 41, 41, 3)))
+              if per_pixel else LIGHTS)
+    intensities = np.broadcast_to(e[:, None, None], images.shape).copy() if per_pixel else e
+    rows = light_rows(lights, shape=mask.shape, intensities=intensities)
+    assert isinstance(rows, LightRows) and rows.light_count == 7
+    assert rows.rows.shape == ((7, 3, 41, 41) if per_pixel else (7, 3, 1, 1))
+    assert not rows.rows.flags.writeable
+    kwargs = {"mask": mask, "shadow_level": 0.02}
+    given = solve_lambertian(images, lights, intensities=intensities, **kwargs)
+    made = solve_lambertian(images, rows, **kwargs)
+    np.testing.assert_array_equal(made.valid, given.valid)
+    np.testing.assert_array_equal(made.used_lights, given.used_lights)
+    np.testing.assert_allclose(made.normals, given.normals, atol=8 * U32)
+    np.testing.assert_allclose(made.albedo, given.albedo, rtol=8 * U32)
+
+
+def test_light_rows_mark_unusable_lights_and_refuse_intensities_twice() -> None:
+    lights = np.broadcast_to(LIGHTS[:, None, None, :], (7, 2, 3, 3)).copy()
+    intensities = np.ones((7, 2, 3))
+    intensities[1, 0, 0] = 0.0
+    intensities[2, 1, 2] = np.nan
+    lights[3, 1, 1] = np.inf
+    rows = light_rows(lights, shape=(2, 3), intensities=intensities).rows
+    unusable = ~np.isfinite(rows).all(axis=1)  # (K, H, W)
+    expected = np.zeros((7, 2, 3), bool)
+    expected[1, 0, 0] = expected[2, 1, 2] = expected[3, 1, 1] = True
+    np.testing.assert_array_equal(unusable, expected)
+    made = light_rows(LIGHTS, shape=(2, 3))
+    with pytest.raises(FingerpsReconError, match="give no intensities"):
+        solve_lambertian(np.ones((7, 2, 3)), made, intensities=np.ones(7))
+    with pytest.raises(FingerpsReconError, match="do not fit"):
+        solve_lambertian(np.ones((6, 2, 3)), made)
+    with pytest.raises(FingerpsReconError, match="do not fit"):
+        solve_lambertian(np.ones((7, 2, 4)), light_rows(lights, shape=(2, 3)))

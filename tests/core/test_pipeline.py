@@ -308,3 +308,21 @@ def test_empty_images_are_refused_not_crashed_on(rig: SimulatedRig, burst: Burst
         with pytest.raises(FingerpsReconError, match="empty"):  # was ValueError: zero-size
             reconstruct_prepared(np.zeros((rig.led_count, *shape), np.uint8), prepared,
                                  full_scale=FULL_SCALE)
+
+
+def test_a_burst_in_any_dtype_gives_the_same_reconstruction(rig: SimulatedRig,
+                                                            burst: Burst) -> None:
+    # uint8 and float32 bursts are read as they are (no float copy), float64 ones as float32:
+    # the same values (integers are exact in float32), so the same reconstruction, saturated
+    # pixels (left out by the solve and the mask) included.
+    images = burst.images.copy()
+    images[:, 240:245, 320:325] = FULL_SCALE
+    results = [_reconstruct(rig, images.astype(dtype), options=ReconstructionOptions(
+        enhance=True)) for dtype in (np.uint8, np.float32, np.float64)]
+    first = results[0]
+    assert not first.mask[240:245, 320:325].all()  # the saturated patch is no finger pixel
+    for other in results[1:]:
+        np.testing.assert_array_equal(other.mask, first.mask)
+        np.testing.assert_allclose(other.normals_ps, first.normals_ps, atol=1e-6)
+        np.testing.assert_allclose(other.albedo, first.albedo, rtol=1e-6)
+        np.testing.assert_allclose(other.depth_m, first.depth_m, rtol=1e-6)

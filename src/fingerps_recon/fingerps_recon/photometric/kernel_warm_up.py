@@ -33,6 +33,8 @@ from fingerps_recon.surface import print_kernel
 # Modules holding numba kernels (cache=True), counted in the report.
 KERNEL_MODULES = ("fingerps_recon.photometric.hk_kernel",
                   "fingerps_recon.photometric.lambertian_kernel",
+                  "fingerps_recon.photometric.normal_transform_kernel",
+                  "fingerps_recon.surface.integration_kernel",
                   "fingerps_recon.surface.print_kernel")
 _SIZE = 40          # synthetic image side, pixels
 _RADIUS = 16.0      # synthetic hemisphere radius, pixels

@@ -115,9 +115,79 @@ class LambertianResult:
         return math.sqrt(self.misfit_sq / self.misfit_count) / mean
 
 
+@dataclass(frozen=True)
+class LightRows:
+    """The rows a_k = e_k l_k of the Lambertian system (Eq. 3) as the compiled solve reads
+    them; made by :func:`light_rows`.
+
+    Attributes
+    ----------
+    rows : (K, 3, H, W) or (K, 3, 1, 1) float32, C-contiguous, read-only
+        x, y, z planes of a_k per light and pixel (near lights, or per-pixel intensities),
+        or one a_k per light; NaN where light k is not usable at a pixel (its direction or
+        intensity not finite, or its intensity not > 0).
+    """
+
+    rows: np.ndarray
+
+    @property
+    def light_count(self) -> int:
+        return int(self.rows.shape[0])
+
+
+def light_rows(
+    lights: np.ndarray,
+    *,
+    shape: tuple[int, int],
+    intensities: np.ndarray | None = None,
+) -> LightRows:
+    """The rows a_k = e_k l_k of :func:`solve_lambertian`'s system for images of ``shape``.
+
+    Parameters
+    ----------
+    lights : (K, 3) or (K, H, W, 3) float
+        As :func:`solve_lambertian`.
+    shape : (H, W)
+        The images' size.
+    intensities : (K,) or (K, H, W) float, optional
+        As :func:`solve_lambertian`.
+
+    Raises
+    ------
+    FingerpsReconError
+        As :func:`solve_lambertian`, for the lights and intensities.
+    """
+    h, w = (int(v) for v in shape)
+    lgt = np.asarray(lights)
+    k = lgt.shape[0] if lgt.ndim in (2, 4) else 0
+    if lgt.shape not in ((k, 3), (k, h, w, 3)):
+        raise FingerpsReconError(
+            f"lights must have shape (K, 3) or (K, H, W, 3) = (K, {h}, {w}, 3) to match "
+            f"images of {h} x {w} px, got {lgt.shape}"
+        )
+    if k < 3:
+        raise FingerpsReconError(f"photometric stereo needs at least 3 lights, got {k}")
+    if lgt.ndim == 2 and not np.all(np.isfinite(lgt)):
+        raise FingerpsReconError("lights contain non-finite values; check the calibration")
+    e = checked_intensities(intensities, shape=(k, h, w))
+    if lgt.ndim == 2 and e.ndim == 1:
+        rows = (lgt * e[:, None]).astype(np.float32).reshape(k, 3, 1, 1)
+    else:
+        rows = np.empty((k, 3, h, w), dtype=np.float32)
+        with np.errstate(invalid="ignore", over="ignore"):
+            for i in range(k):  # one light at a time: planes, no (K, H, W, 3) temporary
+                e_i = np.asarray(e[i], dtype=np.float32)
+                for c in range(3):
+                    np.multiply(lgt[i, ..., c], e_i, out=rows[i, c], casting="unsafe")
+                if e_i.ndim:
+                    rows[i][:, ~((e_i > 0) & (e_i < np.inf))] = np.nan
+    rows.setflags(write=False)
+    return LightRows(rows)
+
+
 def solve_lambertian(
     images: np.ndarray,
-    lights: np.ndarray,
+    lights: np.ndarray | LightRows,
     *,
     intensities: np.ndarray | None = None,
     mask: np.ndarray | None = None,
@@ -129,12 +199,13 @@ def solve_lambertian(
     At each pixel the lights whose value is <= ``shadow_level`` (attached or cast shadow)
     or >= ``saturation_level`` (clipped), or not finite, are left out, and so is a light
     whose direction or intensity at that pixel is not finite or whose intensity is not > 0;
-    the rest, a_k = e_k l_k, give b = rho n = A^-1 sum_k a_k I_k, A = sum_k a_k a_k^T (the
-    least-squares solution pinv(L_used) I_used). Pixels with fewer than 3 usable lights, or
-    whose usable lights are degenerate (nearly coplanar directions), are marked invalid
-    rather than guessed. The sign of n_z is not forced. Float32 arithmetic; distant and near
-    lights go through the same compiled loop (:mod:`photometric.lambertian_kernel`), in
-    at most two threads, over the mask's bounding box only.
+    the rest, a_k = e_k l_k (:func:`light_rows`), give b = rho n = A^-1 sum_k a_k I_k,
+    A = sum_k a_k a_k^T (the least-squares solution pinv(L_used) I_used). Pixels with fewer
+    than 3 usable lights, or whose usable lights are degenerate (nearly coplanar
+    directions), are marked invalid rather than guessed. The sign of n_z is not forced.
+    Float32 arithmetic; distant and near lights go through the same compiled loop
+    (:mod:`photometric.lambertian_kernel`), in at most two threads, over the mask's
+    bounding box only.
 
     Parameters
     ----------
@@ -142,9 +213,11 @@ def solve_lambertian(
         One image per light, any linear scale (flat-field corrected, dark-subtracted).
         uint8, uint16, float32 and float64 are read as they are; other integer and float
         dtypes are converted first (float32 where exact, else float64).
-    lights : (K, 3) or (K, H, W, 3) float
+    lights : (K, 3) or (K, H, W, 3) float, or LightRows
         Unit directions from the surface towards each light, PS frame: one per light, or one
-        per light and pixel (near lights, e.g. from the LED positions and a depth estimate).
+        per light and pixel (near lights, e.g. from the LED positions and a depth estimate);
+        or the rows a_k = e_k l_k made from them by :func:`light_rows` (then no
+        ``intensities``).
     intensities : (K,) or (K, H, W) float, optional
         Relative light intensities e_k > 0, scaling the rows of L (per pixel: the near-light
         irradiance); default all ones.
@@ -169,20 +242,26 @@ def solve_lambertian(
     if imgs.ndim != 3:
         raise FingerpsReconError(f"images must have shape (K, H, W), got {imgs.shape}")
     k, h, w = imgs.shape
-    lgt = np.asarray(lights)
-    if lgt.shape not in ((k, 3), (k, h, w, 3)):
-        raise FingerpsReconError(
-            f"lights must have shape (K, 3) = ({k}, 3) or (K, H, W, 3) = ({k}, {h}, {w}, 3) "
-            f"to match images {imgs.shape}, got {lgt.shape}"
-        )
-    if k < 3:
-        raise FingerpsReconError(f"photometric stereo needs at least 3 lights, got {k}")
     if imgs.dtype.kind not in "biuf":
         raise FingerpsReconError(
             f"images must be integers or floats, got dtype {imgs.dtype}; convert them first")
-    if lgt.ndim == 2 and not np.all(np.isfinite(lgt)):
-        raise FingerpsReconError("lights contain non-finite values; check the calibration")
-    e = checked_intensities(intensities, shape=(k, h, w))
+    if isinstance(lights, LightRows):
+        if intensities is not None:
+            raise FingerpsReconError(
+                "light rows already hold the intensities: give no intensities with them")
+        prepared = lights
+        if (prepared.rows.shape[0] != k
+                or prepared.rows.shape[2:] not in ((1, 1), (h, w))):
+            raise FingerpsReconError(
+                f"light rows {prepared.rows.shape} do not fit the images {imgs.shape}")
+    else:
+        lgt = np.asarray(lights)
+        if lgt.shape not in ((k, 3), (k, h, w, 3)):
+            raise FingerpsReconError(
+                f"lights must have shape (K, 3) = ({k}, 3) or (K, H, W, 3) = ({k}, {h}, {w}, 3) "
+                f"to match images {imgs.shape}, got {lgt.shape}"
+            )
+        prepared = light_rows(lgt, shape=(h, w), intensities=intensities)
     if mask is None:
         m = np.ones((h, w), dtype=bool)
     else:
@@ -206,7 +285,7 @@ def solve_lambertian(
         parts = np.zeros((chunks, 3))
         with numba_threads():
             lambertian_kernel.solve(
-                values, _kernel_lights(lgt), _kernel_intensities(e), m,
+                values, prepared.rows, m,
                 np.array((rows.start, rows.stop, cols.start, cols.stop), dtype=np.int64), lo, hi,
                 np.float32(_MIN_RELATIVE_DETERMINANT),
                 normals, albedo, valid, used, parts,
@@ -224,28 +303,6 @@ def _kernel_images(images: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(images)
     exact = images.dtype.kind == "b" or images.dtype.itemsize <= 2
     return images.astype(np.float32 if exact else np.float64)
-
-
-def _kernel_lights(lights: np.ndarray) -> np.ndarray:
-    """The lights as the kernel reads them: (K, H, W, 3) per-pixel ones as (K, H, 3 W)
-    (float32 or float64 as they are, C-contiguous), (K, 3) distant ones as (K, 1, 3)
-    float32."""
-    k = lights.shape[0]
-    if lights.ndim == 2:
-        return lights.astype(np.float32).reshape(k, 1, 3)
-    if lights.dtype not in (np.float32, np.float64):
-        lights = lights.astype(np.float64)
-    return np.ascontiguousarray(lights).reshape(k, lights.shape[1], -1)
-
-
-def _kernel_intensities(intensities: np.ndarray) -> np.ndarray:
-    """(K, H, W) per-pixel intensities as they are (float32 or float64, C-contiguous), or
-    (K,) ones as (K, 1, 1) float32."""
-    if intensities.ndim == 1:
-        return intensities.astype(np.float32).reshape(-1, 1, 1)
-    if intensities.dtype not in (np.float32, np.float64):
-        intensities = intensities.astype(np.float64)
-    return np.ascontiguousarray(intensities)
 
 
 def _levels(

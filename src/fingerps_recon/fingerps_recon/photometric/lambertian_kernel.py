@@ -5,26 +5,29 @@ with a_k = e_k l_k, the 3x3 normal equations A b = r, A = sum_k a_k a_k^T, r = s
 give b = rho n = A^-1 r, solved in closed form by the adjugate of the symmetric A
 (:mod:`photometric.symmetric_solve`).
 
-One kernel, :func:`solve`, for distant lights (one direction and intensity per light) and
-near lights (one per light and pixel): the image rectangle is cut into chunks of at most
+One kernel, :func:`solve`, for distant lights (one row a_k per light) and near lights (one
+per light and pixel): the rows a_k = e_k l_k come made, once per calibration, as planes
+(K, 3, H, W) or constants (K, 3, 1, 1) (:func:`photometric.lambertian.light_rows`), NaN
+where light k is not usable at a pixel. The image rectangle is cut into chunks of at most
 ``CHUNK`` pixels of one row (each chunk narrowed to its first and last mask pixel, empty ones
-skipped), dealt out to numba's threads (``prange``). Per chunk, light by light, the light's
-direction and intensity over the chunk are copied into a small scratch (a constant for
-distant lights) and the nine sums of A and r are accumulated in float32 for every pixel of
-the chunk in a loop over consecutive pixels without branches (selects), which LLVM vectorises
-(8 pixels at a time with AVX2, 16 with AVX-512); the images are read as they are (uint8,
-uint16, float32, float64: no float copy of the burst). Then, per pixel, the adjugate solve,
-the degenerate test, rho = |b|, n = b / rho, and the results are written into the caller's
-images. Last, the chunk's images and lights are read once more (from the cache) for the
-Lambertian misfit of the solved pixels, sum_k (I_k - e_k rho max(0, n . l_k))^2 over their
-used lights, and the sum and number of those I_k, per chunk in float64. The cost per pixel
-and light does not grow with the number of lights K: nothing is sized by K but the inputs,
-and a chunk's sums and scratch stay in the core's L1 cache.
+skipped, its loops' window widened to a multiple of 16 pixels so that no scalar remainder
+loop is left), dealt out to numba's threads (``prange``). Per chunk, light by light, the nine
+sums of A and r are accumulated in float32 for every pixel of the chunk in a loop over
+consecutive pixels without branches (selects) that reads the image row and the three row
+planes where they are (no copy into a scratch), which LLVM vectorises (8 pixels at a time
+with AVX2, 16 with AVX-512); the images are read as they are (uint8, uint16, float32,
+float64: no float copy of the burst). Then, per pixel, the adjugate solve, the degenerate
+test, rho = |b|, n = b / rho, and the results are written into the caller's images. Last,
+the chunk's images and rows are read once more (from the cache) for the Lambertian misfit
+of the solved pixels, sum_k (I_k - max(0, b . a_k))^2 (= (I_k - e_k rho max(0, n . l_k))^2)
+over their used lights, and the sum and number of those I_k, per chunk in float64. The cost
+per pixel and light does not grow with the number of lights K: nothing is sized by K but
+the inputs, and a chunk's sums and scratch stay in the core's L1 cache.
 
 A light k is used at a pixel if the pixel is in the mask, its value I_k is > ``lo`` (not
-shadowed) and < ``hi`` (not saturated; NaN fails both), its intensity e_k is finite and > 0
-and its direction l_k is finite. A pixel is solved if it uses at least 3 lights and its A is
-not degenerate: det(A) > ``min_det`` (trace(A) / 3)^3 (its light directions not coplanar).
+shadowed) and < ``hi`` (not saturated; NaN fails both) and its row a_k is finite. A pixel is
+solved if it uses at least 3 lights and its A is not degenerate: det(A) > ``min_det``
+(trace(A) / 3)^3 (its light directions not coplanar).
 
 Importing this module needs numba. The compiled code is cached on disk (``cache=True``:
 numba's ``__pycache__`` beside this file when writable, else the user's cache directory, or
@@ -48,13 +51,16 @@ from fingerps_recon.photometric.symmetric_solve import adjugate_solve, symmetric
 # Pixels per chunk (a chunk's nine float32 sums, its scratch and its pixels' inputs stay in
 # the core's L1/L2 cache, whatever the number of lights).
 CHUNK = 256
+# Pixels the per-pixel loops run over come in multiples of this (two AVX2 vectors of float32,
+# one AVX-512 one): the loops have no scalar remainder. CHUNK is a multiple of it.
+_LANES = 16
 
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
 _U = numba.uint64
-# Rows of a chunk's float32 scratch: light k's direction and intensity over the chunk, the
-# mask (1 or 0), and the solution n, rho, and whether it is valid (1 or 0).
-(_LX, _LY, _LZ, _E, _IN, _NX, _NY, _NZ, _RHO, _OK) = (row * CHUNK for row in range(10))
-_SCRATCH = 10 * CHUNK
+# Rows of a chunk's float32 scratch: the mask (1 or 0), the solution b = rho n, whether it
+# is valid (1 or 0), n and rho.
+(_IN, _BX, _BY, _BZ, _OK, _NX, _NY, _NZ, _RHO) = (row * CHUNK for row in range(9))
+_SCRATCH = 9 * CHUNK
 # Rows of a chunk's sums: A (upper triangle), r, the count of used lights.
 (_AXX, _AXY, _AXZ, _AYY, _AYZ, _AZZ, _RX, _RY, _RZ, _CNT) = (row * CHUNK for row in range(10))
 _SUMS = 10 * CHUNK
@@ -70,40 +76,44 @@ _adjugate_solve = inline_kernel(adjugate_solve)
 
 
 @inline_kernel
-def _light_into_scratch(k, r, c0, m, lights, intensity, scr):
-    """Light k's direction and intensity at the chunk's pixels (row r, columns c0 ...
-    c0 + m - 1) into the scratch rows _LX, _LY, _LZ, _E: per pixel from ``lights``
-    (K, H, 3 W) and ``intensity`` (K, H, W), or constants from (K, 1, 3) and (K, 1, 1)."""
-    if lights.shape[1] > 1 or lights.shape[2] > 3:
-        row = lights[k, r]
-        base = 3 * c0
-        for i in range(m):
-            scr[_U(_LX + i)] = row[_U(base + 3 * i)]
-            scr[_U(_LY + i)] = row[_U(base + 3 * i + 1)]
-            scr[_U(_LZ + i)] = row[_U(base + 3 * i + 2)]
-    else:
-        lx = np.float32(lights[k, 0, 0])
-        ly = np.float32(lights[k, 0, 1])
-        lz = np.float32(lights[k, 0, 2])
-        for i in range(m):
-            scr[_U(_LX + i)] = lx
-            scr[_U(_LY + i)] = ly
-            scr[_U(_LZ + i)] = lz
-    if intensity.shape[1] > 1 or intensity.shape[2] > 1:
-        row_e = intensity[k, r]
-        for i in range(m):
-            scr[_U(_E + i)] = row_e[_U(c0 + i)]
-    else:
-        e = np.float32(intensity[k, 0, 0])
-        for i in range(m):
-            scr[_U(_E + i)] = e
+def _used(v, lo, hi, inside, ax, ay, az):
+    """Whether a measurement is used (see the module docstring); NaN fails every test."""
+    finite = (ax - ax == _F0) & (ay - ay == _F0) & (az - az == _F0)
+    return (inside > _F0) & (v > lo) & (v < hi) & finite
 
 
 @inline_kernel
-def _used(v, lo, hi, inside, e, lx, ly, lz):
-    """Whether a measurement is used (see the module docstring); NaN fails every test."""
-    finite = (lx - lx == _F0) & (ly - ly == _F0) & (lz - lz == _F0)
-    return (inside > _F0) & (v > lo) & (v < hi) & (e > _F0) & (e < _INF) & finite
+def _add(v, ax, ay, az, inside, lo, hi, acc, i):
+    """One measurement I_k = v with row a_k = (ax, ay, az) into pixel i's sums, if used."""
+    use = _used(v, lo, hi, inside, ax, ay, az)
+    ax = ax if use else _F0
+    ay = ay if use else _F0
+    az = az if use else _F0
+    value = np.float32(v) if use else _F0
+    acc[_U(_AXX + i)] += ax * ax
+    acc[_U(_AXY + i)] += ax * ay
+    acc[_U(_AXZ + i)] += ax * az
+    acc[_U(_AYY + i)] += ay * ay
+    acc[_U(_AYZ + i)] += ay * az
+    acc[_U(_AZZ + i)] += az * az
+    acc[_U(_RX + i)] += ax * value
+    acc[_U(_RY + i)] += ay * value
+    acc[_U(_RZ + i)] += az * value
+    acc[_U(_CNT + i)] += _F1 if use else _F0
+
+
+@inline_kernel
+def _add_misfit(v, ax, ay, az, ok, bx, by, bz, lo, hi, acc, i):
+    """One measurement's misfit (I_k - max(0, b . a_k))^2, I_k and 1 into pixel i's sums
+    (rows _AXX, _AXY, _AXZ), if used at a solved pixel."""
+    use = _used(v, lo, hi, ok, ax, ay, az)
+    shade = bx * ax + by * ay + bz * az
+    value = np.float32(v) if use else _F0
+    predicted = (shade if shade > _F0 else _F0) if use else _F0
+    diff = value - predicted
+    acc[_U(_AXX + i)] += diff * diff
+    acc[_U(_AXY + i)] += value
+    acc[_U(_AXZ + i)] += _F1 if use else _F0
 
 
 @inline_kernel
@@ -122,41 +132,32 @@ def _span(chunk, r0, c0, c1, mask):
 
 
 @inline_kernel
-def _accumulate(images, lights, intensity, mask, r, start, m, lo, hi, scr, acc):
-    """The chunk's normal equations: per pixel, A (upper triangle), r = sum a_k I_k and the
-    count of used lights into ``acc`` (zero on entry), light by light."""
+def _accumulate(images, rows, mask, r, start, m, offset, span, lo, hi, scr, acc):
+    """The chunk's normal equations: per pixel of the window (columns start ... start +
+    m - 1), A (upper triangle), r = sum a_k I_k and the count of used lights into ``acc``
+    (zero on entry), light by light; only the mask pixels of the chunk's own span (window
+    pixels offset ... offset + span - 1) count as inside."""
     for i in range(m):
-        scr[_U(_IN + i)] = _F1 if mask[r, _U(start + i)] else _F0
+        own = (i >= offset) & (i < offset + span)
+        scr[_U(_IN + i)] = _F1 if own and mask[r, _U(start + i)] else _F0
     for k in range(images.shape[0]):
-        _light_into_scratch(k, r, start, m, lights, intensity, scr)
-        for i in range(m):
-            v = images[k, r, _U(start + i)]
-            e = scr[_U(_E + i)]
-            ax = scr[_U(_LX + i)] * e
-            ay = scr[_U(_LY + i)] * e
-            az = scr[_U(_LZ + i)] * e
-            use = _used(v, lo, hi, scr[_U(_IN + i)], e, scr[_U(_LX + i)],
-                        scr[_U(_LY + i)], scr[_U(_LZ + i)])
-            ax = ax if use else _F0
-            ay = ay if use else _F0
-            az = az if use else _F0
-            value = np.float32(v) if use else _F0
-            acc[_U(_AXX + i)] += ax * ax
-            acc[_U(_AXY + i)] += ax * ay
-            acc[_U(_AXZ + i)] += ax * az
-            acc[_U(_AYY + i)] += ay * ay
-            acc[_U(_AYZ + i)] += ay * az
-            acc[_U(_AZZ + i)] += az * az
-            acc[_U(_RX + i)] += ax * value
-            acc[_U(_RY + i)] += ay * value
-            acc[_U(_RZ + i)] += az * value
-            acc[_U(_CNT + i)] += _F1 if use else _F0
+        image = images[k, r]
+        if rows.shape[2] > 1 or rows.shape[3] > 1:
+            row_x, row_y, row_z = rows[k, 0, r], rows[k, 1, r], rows[k, 2, r]
+            for i in range(m):
+                c = _U(start + i)
+                _add(image[c], row_x[c], row_y[c], row_z[c], scr[_U(_IN + i)], lo, hi, acc, i)
+        else:
+            ax, ay, az = rows[k, 0, 0, 0], rows[k, 1, 0, 0], rows[k, 2, 0, 0]
+            for i in range(m):
+                _add(image[_U(start + i)], ax, ay, az, scr[_U(_IN + i)], lo, hi, acc, i)
 
 
 @inline_kernel
-def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
+def _solve_pixels(r, start, m, offset, span, min_det, acc, scr, normals, albedo, valid, used):
     """Per pixel of the chunk: b = A^-1 r by the adjugate, the degenerate test, rho = |b|,
-    n = b / rho into the scratch rows _NX ... _OK and the result images."""
+    n = b / rho into the scratch rows _BX ... _RHO (vectorised), then into the result
+    images."""
     for i in range(m):
         a_xx, a_xy, a_xz = acc[_U(_AXX + i)], acc[_U(_AXY + i)], acc[_U(_AXZ + i)]
         a_yy, a_yz, a_zz = acc[_U(_AYY + i)], acc[_U(_AYZ + i)], acc[_U(_AZZ + i)]
@@ -172,12 +173,15 @@ def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
         rho = np.sqrt(bx * bx + by * by + bz * bz)
         ok = solved & (rho > _F0) & (rho < _INF)
         inv_rho = _F1 / rho if ok else _F0
+        scr[_U(_BX + i)] = bx if ok else _F0
+        scr[_U(_BY + i)] = by if ok else _F0
+        scr[_U(_BZ + i)] = bz if ok else _F0
+        scr[_U(_OK + i)] = _F1 if ok else _F0
         scr[_U(_NX + i)] = bx * inv_rho if ok else _F0
         scr[_U(_NY + i)] = by * inv_rho if ok else _F0
         scr[_U(_NZ + i)] = bz * inv_rho if ok else _F0
         scr[_U(_RHO + i)] = rho if ok else _F0
-        scr[_U(_OK + i)] = _F1 if ok else _F0
-    for i in range(m):
+    for i in range(offset, offset + span):  # the span's pixels only
         c = _U(start + i)
         normals[r, c, 0] = scr[_U(_NX + i)]
         normals[r, c, 1] = scr[_U(_NY + i)]
@@ -188,28 +192,29 @@ def _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used):
 
 
 @inline_kernel
-def _misfit(images, lights, intensity, r, start, m, lo, hi, scr, acc, parts, chunk):
-    """The chunk's misfit at its solved pixels (scratch rows _NX ... _OK): sum of
-    (I_k - e_k rho max(0, n . l_k))^2, of I_k and their number over the used measurements
-    into ``parts[chunk]`` (float64); ``acc``'s first three rows are overwritten."""
+def _misfit(images, rows, r, start, m, lo, hi, scr, acc, parts, chunk):
+    """The chunk's misfit at its solved pixels (scratch rows _BX ... _OK): sum of
+    (I_k - max(0, b . a_k))^2, of I_k and their number over the used measurements into
+    ``parts[chunk]`` (float64); ``acc``'s first three rows are overwritten."""
     for i in range(m):
         acc[_U(_AXX + i)] = _F0
         acc[_U(_AXY + i)] = _F0
         acc[_U(_AXZ + i)] = _F0
     for k in range(images.shape[0]):
-        _light_into_scratch(k, r, start, m, lights, intensity, scr)
-        for i in range(m):
-            v = images[k, r, _U(start + i)]
-            e = scr[_U(_E + i)]
-            lx, ly, lz = scr[_U(_LX + i)], scr[_U(_LY + i)], scr[_U(_LZ + i)]
-            use = _used(v, lo, hi, scr[_U(_OK + i)], e, lx, ly, lz)
-            shade = scr[_U(_NX + i)] * lx + scr[_U(_NY + i)] * ly + scr[_U(_NZ + i)] * lz
-            value = np.float32(v) if use else _F0
-            predicted = e * scr[_U(_RHO + i)] * max(shade, _F0) if use else _F0
-            diff = value - predicted
-            acc[_U(_AXX + i)] += diff * diff
-            acc[_U(_AXY + i)] += value
-            acc[_U(_AXZ + i)] += _F1 if use else _F0
+        image = images[k, r]
+        if rows.shape[2] > 1 or rows.shape[3] > 1:
+            row_x, row_y, row_z = rows[k, 0, r], rows[k, 1, r], rows[k, 2, r]
+            for i in range(m):
+                c = _U(start + i)
+                _add_misfit(image[c], row_x[c], row_y[c], row_z[c], scr[_U(_OK + i)],
+                            scr[_U(_BX + i)], scr[_U(_BY + i)], scr[_U(_BZ + i)], lo, hi, acc,
+                            i)
+        else:
+            ax, ay, az = rows[k, 0, 0, 0], rows[k, 1, 0, 0], rows[k, 2, 0, 0]
+            for i in range(m):
+                _add_misfit(image[_U(start + i)], ax, ay, az, scr[_U(_OK + i)],
+                            scr[_U(_BX + i)], scr[_U(_BY + i)], scr[_U(_BZ + i)], lo, hi, acc,
+                            i)
     sq = total = count = 0.0
     for i in range(m):
         sq += float(acc[_U(_AXX + i)])
@@ -221,18 +226,15 @@ def _misfit(images, lights, intensity, r, start, m, lo, hi, scr, acc, parts, chu
 
 
 @parallel_kernel
-def solve(images, lights, intensity, mask, box, lo, hi, min_det, normals, albedo, valid, used,
-          parts):
+def solve(images, rows, mask, box, lo, hi, min_det, normals, albedo, valid, used, parts):
     """Solve every mask pixel of the rectangle ``box`` (see the module docstring).
 
     Parameters
     ----------
     images : (K, H, W) uint8, uint16, float32 or float64, C-contiguous
-    lights : (K, H, 3 W) or (K, 1, 3) float32 or float64
-        Unit directions towards the lights (x, y, z of each pixel in turn, i.e. the
-        (K, H, W, 3) array reshaped), per pixel or one per light.
-    intensity : (K, H, W) or (K, 1, 1) float32 or float64
-        e_k, per pixel or one per light.
+    rows : (K, 3, H, W) or (K, 3, 1, 1) float32, C-contiguous
+        a_k = e_k l_k (x, y, z planes), per pixel or one per light; NaN where light k is
+        not usable.
     mask : (H, W) bool
         The pixels to solve.
     box : (4,) int64
@@ -247,18 +249,24 @@ def solve(images, lights, intensity, mask, box, lo, hi, min_det, normals, albedo
         to its last mask pixel.
     parts : (chunks, 3) float64, chunks = its rows x ceil(its columns / CHUNK)
         Zero on entry; per chunk, over its solved pixels' used measurements:
-        sum (I_k - e_k rho max(0, n . l_k))^2, sum I_k and their number (the caller adds
+        sum (I_k - max(0, b . a_k))^2, sum I_k and their number (the caller adds
         them up in order, so that the totals do not depend on the threads).
     """
     for chunk in prange(parts.shape[0]):
-        r, start, m = _span(chunk, box[0], box[2], box[3], mask)
-        if m == 0:
+        r, first, span = _span(chunk, box[0], box[2], box[3], mask)
+        if span == 0:
             continue
+        # The loops run over a window of a multiple of _LANES pixels holding the span (no
+        # scalar remainder loop), moved left where the image row ends.
+        m = min((span + _LANES - 1) // _LANES * _LANES, mask.shape[1])
+        start = min(first, mask.shape[1] - m)
+        offset = first - start
         scr = np.empty(_SCRATCH, np.float32)
         acc = np.zeros(_SUMS, np.float32)
-        _accumulate(images, lights, intensity, mask, r, start, m, lo, hi, scr, acc)
-        _solve_pixels(r, start, m, min_det, acc, scr, normals, albedo, valid, used)
-        _misfit(images, lights, intensity, r, start, m, lo, hi, scr, acc, parts, chunk)
+        _accumulate(images, rows, mask, r, start, m, offset, span, lo, hi, scr, acc)
+        _solve_pixels(r, start, m, offset, span, min_det, acc, scr, normals, albedo, valid,
+                      used)
+        _misfit(images, rows, r, start, m, lo, hi, scr, acc, parts, chunk)
 
 
 # After an edit of a module whose functions the kernels inline (symmetric_solve), the

@@ -13,6 +13,7 @@ import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.mask_box import mask_bounding_box
+from fingerps_recon.photometric.normal_transform_kernel import enhance_planes
 
 
 def enhance_ridges(
@@ -70,44 +71,32 @@ def enhance_ridges(
     else:
         box = (slice(0, h), slice(0, w_img))
         m = None
-    x, y, z = cv2.split(np.ascontiguousarray(n[box], dtype=dtype))  # new planes
+    block = np.ascontiguousarray(n[box], dtype=dtype)
+    x, y, z = cv2.split(block)  # new planes
     # Pixels without a normal (outside the mask, zero or not finite) are zero: they are no
     # neighbours (normalised convolution: the sum is normalised to a direction, so no
     # division by the count is needed) and give zero output.
-    with np.errstate(invalid="ignore"):
-        finite = np.abs(x + y + z) < np.inf  # False for NaN and inf
-    keep = finite if m is None else finite & m
-    if not keep.all():
+    if cv2.checkRange(block)[0]:  # all finite (one pass, the usual case)
+        finite = None
+        keep = m
+    else:
+        with np.errstate(invalid="ignore"):
+            finite = np.abs(x + y + z) < np.inf  # False for NaN and inf
+        keep = finite if m is None else finite & m
+    if keep is not None and not keep.all():
         for c in (x, y, z):
             c *= keep
-        if not finite.all():
+        if finite is not None and not finite.all():
             for c in (x, y, z):
                 c[~finite] = 0  # NaN * 0 is NaN
-    has_normal = (x != 0) | (y != 0) | (z != 0)
-
     size = (int(w), int(w))
     sx, sy, sz = (
         cv2.boxFilter(c, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
         for c in (x, y, z)
     )
-    # n' = (1 + k) n - k s / |s|; where no neighbour has a normal (s = 0) the mean direction
-    # is n itself, so n' = n up to the scale (1 + k), which the normalisation removes.
-    gain = dtype(k)
-    inv_s = _inverse_norm(sx, sy, sz)
-    inv_s *= gain
-    one_k = dtype(1.0 + k)
-    ex = one_k * x - inv_s * sx
-    ey = one_k * y - inv_s * sy
-    ez = one_k * z - inv_s * sz
-    inv_e = _inverse_norm(ex, ey, ez)
-    inv_e[~has_normal] = 0  # no normal in, none out
-    for c in (ex, ey, ez):
-        c *= inv_e
-    enhanced[box] = cv2.merge((ex, ey, ez))
+    # n' = (1 + k) n - k s / |s|, renormalised, in place of n (one compiled pass); where no
+    # neighbour has a normal (s = 0) the mean direction is n itself, so n' = n up to the
+    # scale (1 + k), which the normalisation removes; no normal in, none out.
+    enhance_planes(x, y, z, sx, sy, sz, dtype(k), dtype(1.0 + k))
+    enhanced[box] = cv2.merge((x, y, z))
     return enhanced
-
-
-def _inverse_norm(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """1 / |(x, y, z)| per pixel, 0 where the vector is zero."""
-    norm = np.sqrt(x * x + y * y + z * z)
-    return np.divide(1, norm, out=np.zeros_like(norm), where=norm > 0)

@@ -31,7 +31,7 @@ from fingerps_recon.errors import FingerpsReconError, NoFingerError
 from fingerps_recon.photometric.finger_mask import finger_mask
 from fingerps_recon.photometric.flat_field import flat_field_gain
 from fingerps_recon.photometric.hk_solver import HKLighting, prepare_hk_lighting, solve_hk_prepared
-from fingerps_recon.photometric.lambertian import solve_lambertian
+from fingerps_recon.photometric.lambertian import LightRows, light_rows, solve_lambertian
 from fingerps_recon.photometric.normal_transform import enhance_ridges
 from fingerps_recon.photometric.pixel_rays import near_light_directions_ps, view_directions_ps
 from fingerps_recon.surface.integration import (
@@ -128,6 +128,9 @@ class PreparedCalibration:
         Distant lights with a flat field: 1 / max(p_k, min portion), the factor of Eq. 11.
     views : (3,) or (H, W, 3) float32
         Unit directions towards the camera, PS frame: orthographic or per pixel.
+    lambert_rows : LightRows
+        The rows a_k = e_k l_k of the Lambertian solve, made from ``lights`` and
+        ``light_power`` (:func:`photometric.lambertian.light_rows`).
     hk_lighting : HKLighting or None
         The lights, views and intensities in the HK solver's layout
         (:func:`photometric.hk_solver.prepare_hk_lighting`), when prepared for the HK model.
@@ -139,6 +142,7 @@ class PreparedCalibration:
     light_power: np.ndarray | None
     flat_gain: np.ndarray | None
     views: np.ndarray
+    lambert_rows: LightRows
     hk_lighting: HKLighting | None = None
 
     @property
@@ -201,9 +205,11 @@ def prepare_calibration(
     hk_lighting = (prepare_hk_lighting(lights, shape=(h, w), views=views,
                                        intensities=light_power)
                    if options.model is Model.HK else None)
-    return PreparedCalibration(shape=(h, w), camera_matrix=k_matrix, lights=lights,
-                               light_power=light_power, flat_gain=flat_gain, views=views,
-                               hk_lighting=hk_lighting)
+    return PreparedCalibration(
+        shape=(h, w), camera_matrix=k_matrix, lights=lights, light_power=light_power,
+        flat_gain=flat_gain, views=views,
+        lambert_rows=light_rows(lights, shape=(h, w), intensities=light_power),
+        hk_lighting=hk_lighting)
 
 
 def reconstruct(
@@ -275,34 +281,38 @@ def reconstruct_prepared(
     fewer iterations than from the linear fit it otherwise starts from."""
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    stack = _checked_stack(images, prepared.light_count, full_scale=full_scale,
-                           shadow_fraction=options.shadow_fraction)
+    stack, brightest = _checked_stack(images, prepared.light_count, full_scale=full_scale,
+                                      shadow_fraction=options.shadow_fraction)
     shape = stack.shape[1:]
     if shape != prepared.shape:
         raise FingerpsReconError(
             f"images of {shape[1]} x {shape[0]} px but the calibration was prepared for "
             f"{prepared.shape[1]} x {prepared.shape[0]}: the camera mode changed; "
             "recalibrate (flat field and lights) for this image size")
-    k_matrix = prepared.camera_matrix
-    saturated = stack >= options.saturation_fraction * full_scale
-    if dark is not None:
-        if np.shape(dark) != shape:
-            raise FingerpsReconError(f"dark frame {np.shape(dark)} differs from the images {shape}")
-        stack -= np.asarray(dark, dtype=np.float32)
-        np.maximum(stack, 0.0, out=stack)
-    if prepared.flat_gain is not None:
-        stack *= prepared.flat_gain
-    lights, light_power = prepared.lights, prepared.light_power
-    # Saturated pixels stay excluded after any correction: mark them above the new limit.
-    limit = float(stack.max()) + 1.0
-    any_saturated = bool(saturated.any())
-    if mask is None:
-        mask = finger_mask(np.where(saturated, 0.0, stack) if any_saturated else stack,
-                           threshold=options.mask_threshold)
-    elif np.shape(mask) != shape:
+    if dark is not None and np.shape(dark) != shape:
+        raise FingerpsReconError(f"dark frame {np.shape(dark)} differs from the images {shape}")
+    if mask is not None and np.shape(mask) != shape:
         raise FingerpsReconError(f"mask {np.shape(mask)} differs from the images {shape}")
-    if any_saturated:
-        np.copyto(stack, np.float32(limit), where=saturated)
+    k_matrix = prepared.camera_matrix
+    lights, light_power = prepared.lights, prepared.light_power
+    # Values at or above ``limit`` are saturated (left out by the solvers and the mask).
+    limit = options.saturation_fraction * full_scale
+    if dark is not None or prepared.flat_gain is not None:
+        # The corrections change the values: a float copy, with the saturated pixels marked
+        # above the corrected values' new limit so that they stay excluded.
+        saturated = stack >= limit if bool((brightest >= limit).any()) else None
+        stack = stack.astype(np.float32)
+        if dark is not None:
+            stack -= np.asarray(dark, dtype=np.float32)
+            np.maximum(stack, 0.0, out=stack)
+        if prepared.flat_gain is not None:
+            stack *= prepared.flat_gain
+        limit = float(stack.max()) + 1.0
+        if saturated is not None:
+            np.copyto(stack, np.float32(limit), where=saturated)
+    # else: the images are used as they are (not copied): the saturation level is the limit.
+    if mask is None:
+        mask = finger_mask(stack, threshold=options.mask_threshold, saturation_level=limit)
     mask = np.asarray(mask, dtype=bool)
     if not mask.any():
         raise NoFingerError(
@@ -312,7 +322,7 @@ def reconstruct_prepared(
 
     t1 = time.perf_counter()
     shadow_level = options.shadow_fraction * full_scale
-    lam = solve_lambertian(stack, lights, intensities=light_power, mask=mask,
+    lam = solve_lambertian(stack, prepared.lambert_rows, mask=mask,
                            shadow_level=shadow_level, saturation_level=limit)
     timings["lambert"] = (time.perf_counter() - t1) * 1e3
     valid = lam.valid & mask
@@ -470,11 +480,20 @@ def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
     return depth, height, points, index
 
 
+# Image dtypes used as they are (the solvers read them; integers are exact in float32):
+# the two the kernel warm-up compiles (photometric.kernel_warm_up), so that no burst waits
+# for a compilation; others (uint16 too) become float32.
+_NATIVE_IMAGES = (np.uint8, np.float32)
+
+
 def _checked_stack(images: np.ndarray, light_count: int, *, full_scale: float,
-                   shadow_fraction: float) -> np.ndarray:
-    """The burst as a new (K, H, W) float32 array, or a FingerpsReconError saying what is
-    wrong with it (shape, count, NaN, dark images)."""
-    stack = np.array(images, dtype=np.float32)
+                   shadow_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """The burst as a (K, H, W) uint8 or float32 array (the input itself when it is one of
+    those, else a float32 copy; never modified) and each image's largest value (K,),
+    or a FingerpsReconError saying what is wrong with it (shape, count, NaN, dark images).
+    Integers need no finiteness test; floats are tested by their per-image maximum (NaN
+    and +inf show there) and minimum (-inf): reductions without temporaries."""
+    stack = np.asarray(images)
     if stack.ndim != 3:
         raise FingerpsReconError(
             f"a burst must be K images of one size, (K, H, W); got shape {stack.shape}")
@@ -485,13 +504,17 @@ def _checked_stack(images: np.ndarray, light_count: int, *, full_scale: float,
         raise FingerpsReconError(
             f"{stack.shape[0]} images (shape {stack.shape}) but {light_count} light directions: "
             "give one image per calibrated LED (recalibrate if the LED count changed)")
-    if not np.isfinite(stack).all():
+    if stack.dtype not in _NATIVE_IMAGES:
+        stack = stack.astype(np.float32)
+    flat = stack.reshape(stack.shape[0], -1)
+    brightest = flat.max(axis=1)
+    if stack.dtype.kind == "f" and not (np.isfinite(brightest).all()
+                                        and np.isfinite(flat.min(axis=1)).all()):
         raise FingerpsReconError("the images contain NaN or infinite values; check the camera")
-    brightest = stack.reshape(stack.shape[0], -1).max(axis=1)
     dark = np.flatnonzero(brightest <= shadow_fraction * full_scale)
     if dark.size:
         raise FingerpsReconError(
             f"image(s) of LED {', '.join(str(int(k)) for k in dark)} are dark (nothing above "
             f"{shadow_fraction:.0%} of full scale {full_scale:g}): check that the LED works "
             "and the finger is in view")
-    return stack
+    return stack, brightest

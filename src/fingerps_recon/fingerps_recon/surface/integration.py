@@ -83,6 +83,7 @@ Metric scale of points comes from the camera intrinsics and the working distance
 from __future__ import annotations
 
 from enum import Enum
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -94,6 +95,7 @@ import scipy.sparse.linalg
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.mask_box import mask_bounding_box
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
+from fingerps_recon.surface.integration_kernel import log_depth_steps
 
 _SMALL_COMPONENT = 2048
 
@@ -109,6 +111,7 @@ EXACT_TOL = 1e-6
 # saved on a 432 x 480 DCT (~0.8 ms); one thread leaves the other core to the rest of the node.
 _FFT_WORKERS = 1
 _CROSS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=np.float32)
+_MINUS_CROSS = -_CROSS
 
 
 class IntegrationMethod(Enum):
@@ -239,9 +242,7 @@ def integrate_normals_perspective(
     box = mask_bounding_box(m)
     if box is None:
         return depth
-    du, dv = _log_depth_steps(
-        n[box], m[box], k, origin=(box[0].start, box[1].start), min_nz=float(min_nz)
-    )
+    du, dv = _log_depth_steps(n, m, k, box, min_nz=float(min_nz))
     if method is IntegrationMethod.EXACT:
         du, dv = du.astype(np.float64), dv.astype(np.float64)
     log_depth = _solve(du, dv, m[box], method=method, tol=tol, max_iter=max_iter)
@@ -347,35 +348,28 @@ def _log_depth_steps(
     normals: np.ndarray,
     mask: np.ndarray,
     camera_matrix: np.ndarray,
+    box: tuple[slice, slice],
     *,
-    origin: tuple[int, int],
     min_nz: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Steps of log depth per column and per row (module docstring), float32.
-
-    ``origin`` is the (row, column) of ``normals[0, 0]`` in the full image.
-    """
+    """Steps of log depth per column and per row (module docstring), float32, on ``box``
+    of the (H, W, 3) ``normals`` and (H, W) ``mask``: one compiled pass
+    (:func:`surface.integration_kernel.log_depth_steps`)."""
     fx, s, cx = (float(c) for c in camera_matrix[0])
     fy, cy = float(camera_matrix[1, 1]), float(camera_matrix[1, 2])
-    h, w = mask.shape
-    y_n = ((np.arange(h) + origin[0] - cy) / fy)[:, None]  # (h, 1)
-    x_n = (np.arange(w) + origin[1] - cx)[None, :] / fx  # (1, w), or (h, w) with skew
+    rows, cols = box
+    h, w = rows.stop - rows.start, cols.stop - cols.start
+    y_n = (np.arange(rows.start, rows.stop) - cy) / fy  # (h,)
+    x_n = ((np.arange(cols.start, cols.stop) - cx) / fx)[None, :]  # (1, w), (h, w) with skew
     if s != 0.0:
-        x_n = x_n - (s / fx) * y_n
-    y_n = y_n.astype(np.float32)
-    x_n = x_n.astype(np.float32)
-    ray_norm = x_n * x_n + y_n * y_n  # (h, w)
-    ray_norm += np.float32(1.0)
-    np.sqrt(ray_norm, out=ray_norm)
-    nx, ny, nz, norm, usable = _components_f32(normals, mask)
-    den = nz - nx * x_n
-    den += ny * y_n
-    norm *= np.float32(min_nz) * ray_norm
-    np.maximum(den, norm, out=den)
-    den *= np.float32(fx)
-    num_v = ny if s == 0.0 else ny + np.float32(s / fx) * nx
-    num_v *= np.float32(-fx / fy)
-    return _divided(nx, num_v, den, usable)
+        x_n = x_n - (s / fx) * y_n[:, None]
+    du = np.empty((h, w), dtype=np.float32)
+    dv = np.empty((h, w), dtype=np.float32)
+    f32 = np.float32
+    log_depth_steps(np.ascontiguousarray(normals, dtype=f32), np.ascontiguousarray(mask),
+                    rows.start, cols.start, x_n.astype(f32), y_n.astype(f32), f32(s / fx),
+                    f32(min_nz), f32(fx), f32(fy), du, dv)
+    return du, dv
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -502,18 +496,13 @@ def _pcg_box(
     degree *= inside
 
     def laplacian(v: np.ndarray) -> np.ndarray:
-        av = cv2.filter2D(v, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
+        # degree * v - (sum of the inside neighbours), v zero outside: three passes
+        av = cv2.filter2D(v, -1, _MINUS_CROSS, borderType=cv2.BORDER_CONSTANT)
         av *= inside
-        np.subtract(degree * v, av, out=av)
+        cv2.accumulateProduct(degree, v, av)
         return av
 
-    # Eigenvalues of the rectangle's 4-neighbour Neumann Laplacian in the DCT-II basis.
-    ev = (2.0 - 2.0 * np.cos(np.pi * np.arange(shape[0]) / shape[0]))[:, None] + (
-        2.0 - 2.0 * np.cos(np.pi * np.arange(shape[1]) / shape[1])
-    )[None, :]
-    ev[0, 0] = 1.0
-    inv_ev = (1.0 / ev).astype(np.float32)
-    inv_ev[0, 0] = 0.0  # the constant mode is free
+    inv_ev = _inverse_eigenvalues(shape)
 
     def precondition(res: np.ndarray) -> np.ndarray:
         spec = scipy.fft.dctn(res, type=2, norm="ortho", workers=_FFT_WORKERS)
@@ -542,6 +531,21 @@ def _pcg_box(
     return None
 
 
+@lru_cache(maxsize=4)
+def _inverse_eigenvalues(shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) float32 inverse eigenvalues of the h x w rectangle's 4-neighbour Neumann
+    Laplacian in the DCT-II basis, 0 for the constant mode (free); read-only, kept for the
+    next burst of the same box size."""
+    ev = (2.0 - 2.0 * np.cos(np.pi * np.arange(shape[0]) / shape[0]))[:, None] + (
+        2.0 - 2.0 * np.cos(np.pi * np.arange(shape[1]) / shape[1])
+    )[None, :]
+    ev[0, 0] = 1.0
+    inv_ev = (1.0 / ev).astype(np.float32)
+    inv_ev[0, 0] = 0.0  # the constant mode is free
+    inv_ev.setflags(write=False)
+    return inv_ev
+
+
 def _labels(mask: np.ndarray) -> tuple[np.ndarray | None, int]:
     """4-connected component labels 0..n-1 of the mask pixels (None if there is one)."""
     n_labels, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=4)
@@ -557,9 +561,10 @@ def _subtract_component_means(
 
     Values outside the mask are left as they are.
     """
-    if labels is None:
-        total = values.sum(where=mask, dtype=np.float64)
-        values -= np.float32(total / np.count_nonzero(mask)) * mask
+    if labels is None:  # one pass for the mean, one for the subtraction (OpenCV, masked)
+        inside = mask.view(np.uint8)
+        mean = cv2.mean(values, mask=inside)[0]
+        cv2.subtract(values, mean, dst=values, mask=inside)
         return
     inner = values[mask]
     sums = np.bincount(labels, weights=inner, minlength=n_comp)
@@ -786,18 +791,26 @@ def depth_to_points(
     fx, s, cx = k[0]
     fy, cy = k[1, 1], k[1, 2]
     h, w = depth.shape
+    keep = np.zeros((h, w), dtype=bool)
+    box = mask_bounding_box(m)
+    if box is None:
+        return np.empty((0, 3), dtype=np.float32), np.empty(0, dtype=np.int64)
+    # Everything on the mask's bounding box only: planes there, then one gather each
+    # (raster order in the box is raster order in the image).
+    z = depth[box].astype(np.float32, copy=False)
     with np.errstate(invalid="ignore"):
-        keep = m & (depth > 0) & (depth < np.inf)  # NaN compares False
+        kept = m[box] & (z > 0) & (z < np.inf)  # NaN compares False
+    keep[box] = kept
     index = np.flatnonzero(keep)
-    z = depth.astype(np.float32, copy=False)
-    y_row = ((np.arange(h) - cy) / fy).astype(np.float32)[:, None]  # y_n per image row
-    x_col = ((np.arange(w) - cx) / fx).astype(np.float32)  # x_n per column, without skew
+    rows, cols = box
+    y_row = ((np.arange(rows.start, rows.stop) - cy) / fy).astype(np.float32)[:, None]  # y_n
+    x_col = ((np.arange(cols.start, cols.stop) - cx) / fx).astype(np.float32)  # x_n, no skew
     points = np.empty((index.size, 3), dtype=np.float32)
-    y = z * y_row  # whole-image planes, then one gather each: cheaper than gathering u, v
-    points[:, 1] = y.ravel()[index]
+    y = z * y_row
+    points[:, 1] = y[kept]
     x = z * x_col
     if s != 0.0:
         x -= np.float32(s / fx) * y
-    points[:, 0] = x.ravel()[index]
-    points[:, 2] = z.ravel()[index]
+    points[:, 0] = x[kept]
+    points[:, 2] = z[kept]
     return points, index.astype(np.int64, copy=False)
