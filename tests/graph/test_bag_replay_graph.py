@@ -1,10 +1,11 @@
 """bag_replay as a real process feeding a real recon_node: the bag is written here with
 SessionBagWriter from messages of the simulated rig (a LightCalibration and two Bursts one
 second apart), played at its recorded timing, and recon's normals are compared with
-`pipeline.reconstruct` run directly on the bursts read back from the bag.
+the pipeline run directly on the bursts read back from the bag, in their order (the HK fit
+of A of each burst after the first starts from the previous burst's A, as in the node).
 
 Equality: bitwise (``np.array_equal``) - the node runs the same function on the same arrays
-in the same order, so nothing but the transport differs.
+in the same order on the same machine, so nothing but the transport differs.
 """
 
 from __future__ import annotations
@@ -21,7 +22,12 @@ from sensor_msgs.msg import Image
 from fingerps_driver.simulation import Scene
 from fingerps_msgs.msg import Burst, LightCalibration
 from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
-from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions, reconstruct
+from fingerps_recon.photometric.pipeline import (
+    Model,
+    ReconstructionOptions,
+    prepare_calibration,
+    reconstruct_prepared,
+)
 from fingerps_recon.sessions.bag_reader import SessionBagReader
 from fingerps_recon.sessions.message_definition import MessageDefinition, load_message_definition
 from fingerps_recon.sessions.session_bag import (
@@ -64,19 +70,22 @@ def session_bag(tmp_path_factory: pytest.TempPathFactory, rig_messages) -> Path:
     return path
 
 
-def _direct_normals(lights: LightCalibration, burst: Burst) -> np.ndarray:
-    """recon_node's computation, without ROS (its default parameters)."""
+def _direct_normals(lights: LightCalibration, burst: Burst,
+                    initial_scale: float | None) -> tuple[np.ndarray, float | None]:
+    """recon_node's computation, without ROS (its default parameters), the HK fit of A
+    started from ``initial_scale`` (the previous burst's A): the normals and the new A."""
     frames = sorted(burst.frames, key=lambda f: f.led_index)
     images = np.stack([image_to_array(f.image) for f in frames])
     directions = np.array([[d.x, d.y, d.z] for d in lights.directions])
     intensities = np.asarray(lights.relative_intensities, dtype=np.float64)
-    result = reconstruct(
-        images, lights_ps=optical_to_ps(directions),
+    options = ReconstructionOptions(model=Model.HK, enhance=True)
+    prepared = prepare_calibration(
+        optical_to_ps(directions),
         camera_matrix=np.asarray(burst.camera_info.k, dtype=np.float64).reshape(3, 3),
-        full_scale=255.0, intensities=intensities, portions=None, dark=None,
-        led_positions_optical=None,
-        options=ReconstructionOptions(model=Model.HK, enhance=True))
-    return ps_to_optical(result.normals_ps).astype(np.float32)
+        shape=images.shape[1:], intensities=intensities, options=options)
+    result = reconstruct_prepared(images, prepared, full_scale=255.0, options=options,
+                                  hk_initial_scale=initial_scale)
+    return ps_to_optical(result.normals_ps).astype(np.float32), result.hk_scale
 
 
 def test_replayed_bursts_reconstruct_as_live(session_bag: Path, ros_node: Node, start_node,
@@ -96,10 +105,12 @@ def test_replayed_bursts_reconstruct_as_live(session_bag: Path, ros_node: Node, 
 
     reader = SessionBagReader(session_bag)
     lights = reader.latest(LIGHTS_TOPIC)
+    scale = None
     for message in reader.messages([BURST_TOPIC]):
         burst = message.deserialize()
         live = image_to_array(received[burst.header.stamp.sec])
-        assert np.array_equal(live, _direct_normals(lights, burst))
+        direct, scale = _direct_normals(lights, burst, scale)
+        assert np.array_equal(live, direct)
         assert np.count_nonzero(live.any(axis=2)) > 1000
 
 
