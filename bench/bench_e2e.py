@@ -19,18 +19,19 @@ The demo (``demo --bursts 10 --model hk``, requested at its default 5 bursts/s; 
 
 The kiosk (``e2e.hk.*``, ``e2e.hk10.*``, ``e2e.first_cloud_s``, ``e2e.hk_print_rec.*``):
 driver_node (simulated rig, continuous capture), calib_node (``calibration_dir`` in the
-temporary folder) and recon_node (``model:=hk``). The benchmark's own node (another process than recon) calibrates the flat
-field (white target) and the lights (shiny sphere, three placements) through the services
-as the demo does, with the driver at ``rate`` 0, then puts the finger in front of the camera
-and sets the driver's ``rate`` to 5 bursts/s at run time (a parameter service call). It
-subscribes to ``/fingerps/burst`` (the QoS it is published with; serialized, only the
-header stamp is read) to know every burst published, and to ``/fingerps/points``
-(PointCloud2, deserialized as any consumer would). recon_node copies the burst's header into
-its outputs, and the burst's header is that of its last frame: ``header.stamp`` is the wall
-clock (``time.time_ns`` in driver_node) when the board acknowledged the last LED's switch,
-just before that frame's grab; so a cloud is matched to its burst by stamp, and its latency
-covers the last frame's exposure and grab, publishing the burst, transport, the queue,
-the reconstruction, publishing and transport of the outputs and deserializing the cloud.
+temporary folder) and recon_node (``model:=hk``). The benchmark's own node (another process
+than recon) calibrates the flat field (white target) and the lights (shiny sphere, three
+placements) through the services as the demo does, with the driver at ``rate`` 0, then puts
+the finger in front of the camera and sets the driver's ``rate`` to 5 bursts/s at run time
+(a parameter service call). It subscribes to ``/fingerps/burst`` (the QoS it is published
+with; serialized, only the header stamp is read) to know every burst published, and to
+``/fingerps/points`` (PointCloud2, deserialized as any consumer would). recon_node copies
+the burst's header into its outputs, and the burst's header is that of its last frame:
+``header.stamp`` is the wall clock (``time.time_ns`` in driver_node) when the board
+acknowledged the last LED's switch, just before that frame's grab; so a cloud is matched to
+its burst by stamp, and its latency covers the last frame's exposure and grab, publishing
+the burst, transport, the queue, the reconstruction, publishing and transport of the outputs
+and deserializing the cloud.
 
 After a warm-up (the first cloud, up to ``FIRST_CLOUD_TIMEOUT_S``; then 5 clouds or 10 s),
 windows of ``WINDOW_S`` = 60 s, each with the same five figures under its prefix:
