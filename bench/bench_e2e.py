@@ -17,48 +17,73 @@ The demo (``demo --bursts 10 --model hk``, requested at its default 5 bursts/s; 
   over the bursts after the first;
 - ``e2e.mae_deg``: mean angular error of the normals against ground truth in the finger.
 
-The kiosk (``e2e.hk.*``, ``e2e.first_cloud_s``): driver_node (simulated rig, continuous
-capture), calib_node (``calibration_dir`` in the temporary folder) and recon_node
-(``model:=hk``). The benchmark's own node (another process than recon) calibrates the flat
-field (white target) and the lights (shiny sphere, three placements) through the services
-as the demo does, with the driver at ``rate`` 0, then puts the finger in front of the camera
-and sets the driver's ``rate`` to 5 bursts/s at run time (a parameter service call). It
-subscribes to ``/fingerps/burst`` (the QoS it is published with; serialized, only the
-header stamp is read) to know every burst published, and to ``/fingerps/points``
-(PointCloud2, deserialized as any consumer would). recon_node copies the burst's header into
-its outputs, and the burst's header is that of its last frame: ``header.stamp`` is the wall
-clock (``time.time_ns`` in driver_node) when the board acknowledged the last LED's switch,
-just before that frame's grab; so a cloud is matched to its burst by stamp, and its latency
-covers the last frame's exposure and grab, publishing the burst, transport, the queue,
-the reconstruction, publishing and transport of the outputs and deserializing the cloud.
+The kiosk (``e2e.hk.*``, ``e2e.hk10.*``, ``e2e.first_cloud_s``, ``e2e.hk_print_rec.*``):
+driver_node (simulated rig, continuous capture), calib_node (``calibration_dir`` in the
+temporary folder) and recon_node (``model:=hk``). The benchmark's own node (another process
+than recon) calibrates the flat field (white target) and the lights (shiny sphere, three
+placements) through the services as the demo does, with the driver at ``rate`` 0, then puts
+the finger in front of the camera and sets the driver's ``rate`` to 5 bursts/s at run time
+(a parameter service call). It subscribes to ``/fingerps/burst`` (the QoS it is published
+with; serialized, only the header stamp is read) to know every burst published, and to
+``/fingerps/points`` (PointCloud2, deserialized as any consumer would). recon_node copies
+the burst's header into its outputs, and the burst's header is that of its last frame:
+``header.stamp`` is the wall clock (``time.time_ns`` in driver_node) when the board
+acknowledged the last LED's switch, just before that frame's grab; so a cloud is matched to
+its burst by stamp, and its latency covers the last frame's exposure and grab, publishing
+the burst, transport, the queue, the reconstruction, publishing and transport of the outputs
+and deserializing the cloud.
 
-After a warm-up (the first cloud, up to ``FIRST_CLOUD_TIMEOUT_S``; then 5 clouds or 10 s), a
-window of ``WINDOW_S`` = 60 s at 5 bursts/s:
+After a warm-up (the first cloud, up to ``FIRST_CLOUD_TIMEOUT_S``; then 5 clouds or 10 s),
+windows of ``WINDOW_S`` = 60 s, each with the same five figures under its prefix:
 
-- ``e2e.hk.bursts_per_s``: clouds received in the window (by arrival time) / its length;
-- ``e2e.hk.published_per_s``: bursts the driver published in the window (stamp inside it)
-  / its length (what it delivered against the 5 asked for);
-- ``e2e.hk.lost``: bursts published in the window (stamp inside it) whose cloud never
+- ``<prefix>.bursts_per_s``: clouds received in the window (by arrival time) / its length;
+- ``<prefix>.published_per_s``: bursts the driver published in the window (stamp inside it)
+  / its length (what it delivered against the rate asked for: the driver may not keep up);
+- ``<prefix>.lost``: bursts published in the window (stamp inside it) whose cloud never
   arrived (recon's queue dropped them, or they failed), counted after a grace period that
   ends when every one has its cloud or no cloud of the window arrived for a while;
-- ``e2e.hk.latency_ms_median``, ``e2e.hk.latency_ms_p95``: received (``time.time_ns`` in
+- ``<prefix>.latency_ms_median``, ``<prefix>.latency_ms_p95``: received (``time.time_ns`` in
   the subscriber's callback) - ``header.stamp``, over the clouds of the window's bursts.
 
-- ``e2e.hk.max_bursts_per_s``: the highest rate the driver delivered with nothing lost. The
-  60 s window is the sweep's 5/s point; if it lost nothing, the rate is raised through
-  ``SWEEP_UP`` (each ``SWEEP_SETTLE_S`` to settle, then a ``SWEEP_WINDOW_S`` window) until a
-  window loses a burst or the driver delivers less than 90 % of the rate asked for; the
-  figure is the largest delivered rate (``published_per_s``) of a lossless window. If 5/s
-  lost bursts it is lowered through ``SWEEP_DOWN`` to the first lossless window (0 if none).
+The windows, in this order on one graph (after a rate change ``RATE_SETTLE_S`` to settle):
+
+- ``e2e.hk.*``: the driver at 5 bursts/s (the rig's rate), right after the warm-up;
+- ``e2e.hk10.*``: the driver at ``FAST_RATE_HZ`` = 10 bursts/s;
+- ``e2e.hk.max_bursts_per_s``: the highest rate the driver delivered with nothing lost: the
+  largest ``published_per_s`` of a lossless window among the 5/s and 10/s windows and a
+  sweep of ``SWEEP_WINDOW_S`` windows: if 10/s lost nothing (and the driver delivered at
+  least 90 % of it), up through ``SWEEP_UP`` until a window loses a burst or the driver
+  delivers less than 90 % of the rate asked for; if 5/s lost nothing but 10/s did, the
+  rates of ``SWEEP_BETWEEN``; if 5/s lost bursts, down through ``SWEEP_DOWN`` to the first
+  lossless window (0 if none).
 - ``e2e.first_cloud_s``: with the driver capturing at 5/s and calib_node holding the
   calibration (transient-local), recon_node is stopped (SIGINT, waited for) and launched
   again; seconds from launching its process to the first PointCloud2 received; median of
   ``FIRST_CLOUD_STARTS`` starts on the built workspace (caches as the build left them).
+- ``e2e.hk_print_rec.*``: the kiosk with the print and the recorder: recorder_node
+  (fingerps_recon; ``bags_dir`` in the temporary folder, its defaults otherwise: the
+  session topics with the outputs, so the print too) started, recon_node launched again
+  with ``model:=hk`` and ``fingerprint:=true``; after the warm-up (its first cloud and
+  print, then 5 clouds or 10 s) a window at ``PRINT_RATE_HZ`` = 5 bursts/s with the five
+  figures above, and:
 
-Targets (issue 10): ``e2e.hk.bursts_per_s`` >= 5 with ``e2e.hk.lost`` = 0, latency median
-<= 150 ms, p95 <= 250 ms, ``e2e.first_cloud_s`` <= 10.
+  - ``e2e.hk_print_rec.prints``: the window's bursts whose print (``/fingerps/fingerprint``,
+    mono8, matched by stamp; serialized, only the header stamp is read) arrived;
+  - ``e2e.hk_print_rec.print_latency_ms_median``: print received - ``header.stamp``;
+  - ``e2e.hk_print_rec.recorder_not_written``: messages the recorder subscribed to and did
+    not write over its whole recording (warm-up, window and stop): the finished bag's count
+    (metadata.yaml ``custom_data`` ``fingerps.not_written``, by topic and reason in the
+    printed line), else its last /diagnostics' ``not_written`` (left out if neither).
 
-Alone: ``python bench/bench_e2e.py`` (``--no-demo`` skips the demo runs).
+Targets (issue 21, for the AVX2 pass's figures on 2 cores): ``e2e.hk10.lost`` = 0 with
+``e2e.hk10.published_per_s`` ~ 10, ``e2e.hk10.latency_ms_median`` <= 100 ms,
+``e2e.hk10.latency_ms_p95`` <= 150 ms; ``e2e.hk.max_bursts_per_s`` reported;
+``e2e.hk_print_rec.lost`` = 0 (and ``prints`` = every burst of the window),
+``e2e.hk_print_rec.latency_ms_median`` <= 150 ms. Issue 10's ``e2e.first_cloud_s`` <= 10
+stands.
+
+Alone: ``python bench/bench_e2e.py`` (``--no-demo`` skips the demo runs; ``--only
+kiosk10,print`` runs only those scenarios, of ``SCENARIOS``).
 """
 
 from __future__ import annotations
@@ -73,7 +98,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -91,17 +116,29 @@ DEMO_RUNS = 3
 DEMO_NAMES = ("e2e.first_latency_ms", "e2e.bursts_per_s", "e2e.latency_ms_median",
               "e2e.latency_ms_p95", "e2e.mae_deg")
 
+SCENARIOS = ("demo", "kiosk", "kiosk10", "sweep", "first_cloud", "print")
+"""What ``--only`` chooses from: the demo runs; the graph's 5/s window (``e2e.hk.*``), 10/s
+window (``e2e.hk10.*``), rate sweep (``e2e.hk.max_bursts_per_s``; it needs both windows),
+restarts (``e2e.first_cloud_s``) and print-and-recorder window (``e2e.hk_print_rec.*``)."""
+GRAPH_SCENARIOS = SCENARIOS[1:]
+
 RATE_HZ = 5.0                  # the rig's burst rate: the kiosk's setting
+FAST_RATE_HZ = 10.0            # issue 21's target rate
+PRINT_RATE_HZ = 5.0            # the kiosk with the print and the recorder
 WINDOW_S = 60.0
 WARM_UP_CLOUDS, WARM_UP_MAX_S = 5, 10.0
 FIRST_CLOUD_TIMEOUT_S = 120.0  # a first reconstruction that compiles kernels is slow
-SWEEP_UP = (7.5, 10.0, 12.5, 15.0, 20.0)
-SWEEP_DOWN = (2.5, 1.0)
-SWEEP_SETTLE_S, SWEEP_WINDOW_S = 3.0, 15.0
+RATE_SETTLE_S = 3.0            # after the driver's rate is changed, before a window
+SWEEP_UP = (12.5, 15.0, 20.0)  # beyond a lossless 10/s window
+SWEEP_BETWEEN = (7.5,)         # after a lossless 5/s and a lossy 10/s window
+SWEEP_DOWN = (2.5, 1.0)        # after a lossy 5/s window
+SWEEP_WINDOW_S = 15.0
 DELIVERED_FRACTION = 0.9       # below this share of the rate asked for, the driver cannot
 FIRST_CLOUD_STARTS = 3
 GRACE_MAX_S = 20.0             # longest wait for a window's last clouds
+PRINT_AFTER_CLOUD_S = 1.0      # and for the last prints once the clouds are in
 STOP_TIMEOUT_S = 20.0
+RECORDER_STOP_TIMEOUT_S = 60.0  # the recorder drains its queue and finishes its bag
 
 
 class BenchError(Exception):
@@ -167,15 +204,15 @@ class Graph:
         text = self.logs[name].read_text(errors="replace").splitlines()
         return "\n".join(f"  | {line}" for line in text[-lines:])
 
-    def stop(self, name: str) -> int:
+    def stop(self, name: str, timeout: float = STOP_TIMEOUT_S) -> int:
         """SIGINT (as Ctrl-C), wait; SIGKILL of its process group if it does not stop."""
         proc = self.procs.pop(name)
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)
         try:
-            code = proc.wait(timeout=STOP_TIMEOUT_S)
+            code = proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
-            print(f"bench_e2e: {name} ignored SIGINT for {STOP_TIMEOUT_S:.0f} s; killed",
+            print(f"bench_e2e: {name} ignored SIGINT for {timeout:.0f} s; killed",
                   file=sys.stderr)
             code = None
         try:
@@ -188,7 +225,9 @@ class Graph:
         for proc in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
-        return {name: self.stop(name) for name in list(self.procs)[::-1]}
+        return {name: self.stop(name, RECORDER_STOP_TIMEOUT_S if name == "recorder_node"
+                                else STOP_TIMEOUT_S)
+                for name in list(self.procs)[::-1]}
 
 
 # ---------------------------------------------------------------------------- observer
@@ -198,14 +237,16 @@ class Seen:
 
     bursts: dict[int, int] = field(default_factory=dict)         # stamp -> received
     clouds: dict[int, int] = field(default_factory=dict)         # stamp -> received
+    prints: dict[int, int] = field(default_factory=dict)         # stamp -> received
     cloud_mono: list[float] = field(default_factory=list)        # time.monotonic() of each
     diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
 def _burst_stamp(serialized: bytes) -> int:
-    """header.stamp of a serialized Burst: CDR (4-byte encapsulation), then int32 sec and
-    uint32 nanosec, little-endian as the encapsulation says."""
+    """header.stamp of a serialized message that starts with its std_msgs/Header (a Burst,
+    an Image): CDR (4-byte encapsulation), then int32 sec and uint32 nanosec, little-endian
+    as the encapsulation says."""
     endian = "<" if serialized[1] & 1 else ">"
     sec, nanosec = struct.unpack_from(endian + "iI", serialized, 4)
     return sec * 1_000_000_000 + nanosec
@@ -221,7 +262,7 @@ class Observer:
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
-        from sensor_msgs.msg import PointCloud2
+        from sensor_msgs.msg import Image, PointCloud2
 
         from fingerps_msgs.msg import Burst
         from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
@@ -250,6 +291,8 @@ class Observer:
         self.driver_params = node.create_client(SetParameters, "driver/set_parameters")
         node.create_subscription(Burst, topics.BURST, self._on_burst, qos.BURST_QOS, raw=True)
         node.create_subscription(PointCloud2, topics.POINTS, self._on_cloud, qos.OUTPUT_QOS)
+        node.create_subscription(Image, topics.FINGERPRINT, self._on_print, qos.OUTPUT_QOS,
+                                 raw=True)
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, 10)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(node)
@@ -277,6 +320,11 @@ class Observer:
         with self.seen.lock:
             self.seen.clouds[stamp] = now
             self.seen.cloud_mono.append(mono)
+
+    def _on_print(self, serialized: bytes) -> None:
+        now = time.time_ns()
+        with self.seen.lock:
+            self.seen.prints[_burst_stamp(serialized)] = now
 
     def _on_diag(self, msg) -> None:
         with self.seen.lock:
@@ -355,6 +403,8 @@ class Window:
     latency_ms: tuple[float, ...]
     recon_counts: dict[str, int]  # recon's diagnostics counters over the window (about)
     recon_stages: dict[str, str] = field(default_factory=dict)  # its stage medians, ms
+    prints: int = 0              # the window's bursts whose print arrived (fingerprint topic)
+    print_latency_ms: tuple[float, ...] = ()
 
     @property
     def published_per_s(self) -> float:
@@ -372,6 +422,9 @@ class Window:
                 f"{self.published_per_s:5.2f}/s, clouds {self.bursts_per_s:5.2f}/s, lost "
                 f"{self.lost}/{self.published}, {lat}; recon's diagnostics: "
                 + ", ".join(f"{k} {v}" for k, v in self.recon_counts.items())
+                + (f"; prints {self.prints}/{self.published}, print latency median "
+                   f"{np.median(self.print_latency_ms):.0f} ms" if self.print_latency_ms
+                   else "")
                 + ("; recon's stage medians (ms): " + ", ".join(
                     f"{k.removesuffix('_ms')} {v}" for k, v in self.recon_stages.items())
                    if self.recon_stages else ""))
@@ -410,24 +463,168 @@ def measure(observer: Observer, graph: Graph, rate: float, seconds: float,
             break
         time.sleep(0.05)
     with seen.lock:
+        printing = bool(seen.prints)
+    if printing:
+        time.sleep(PRINT_AFTER_CLOUD_S)  # a burst's print is published after its cloud
+    with seen.lock:
         received = sum(1 for t in seen.clouds.values() if t0 <= t < t1)
+        printed = {s: seen.prints[s] for s in window if s in seen.prints}
     counts_after = observer.recon_counts()
     counts = {k: counts_after[k] - counts_before.get(k, 0) for k in counts_after}
     with seen.lock:
         values = seen.diagnostics.get("recon: reconstruction", {})
         stages = {k: v for k, v in values.items() if k.endswith("_ms")}
     return Window(rate, (t1 - t0) / 1e9, len(window), received, len(window) - len(done),
-                  tuple(latency), counts, stages)
+                  tuple(latency), counts, stages, len(printed),
+                  tuple((printed[s] - s) / 1e6 for s in printed))
 
 
 # ---------------------------------------------------------------------------- the kiosk
-def run_kiosk(env: dict[str, str], domain_id: int, home: Path) -> dict[str, float]:
-    """The e2e.hk.* figures and e2e.first_cloud_s (see the module docstring)."""
+def window_figures(prefix: str, w: Window) -> dict[str, float]:
+    """A window's figures under ``<prefix>.``: throughput, delivered rate, lost, latency."""
+    return {
+        f"{prefix}.bursts_per_s": w.bursts_per_s,
+        f"{prefix}.published_per_s": w.published_per_s,
+        f"{prefix}.lost": float(w.lost),
+        f"{prefix}.latency_ms_median": (float(np.median(w.latency_ms)) if w.latency_ms
+                                        else float("nan")),
+        f"{prefix}.latency_ms_p95": (float(np.percentile(w.latency_ms, 95)) if w.latency_ms
+                                     else float("nan")),
+    }
+
+
+def warm_up(observer: Observer, graph: Graph, since: float, what: str,
+            prints: bool = False) -> float:
+    """Wait for the first cloud after ``since`` (and its print if ``prints``), then 5 clouds
+    or 10 s; seconds from ``since`` to the first cloud."""
+    since_ns = time.time_ns() - int((time.monotonic() - since) * 1e9)  # on the wall clock
+
+    def first() -> bool:
+        if not observer.clouds_since(since):
+            return False
+        with observer.seen.lock:
+            return not prints or any(t >= since_ns for t in observer.seen.prints.values())
+
+    wait_until(first, timeout=FIRST_CLOUD_TIMEOUT_S, what=what, graph=graph)
+    t_first = observer.clouds_since(since)[0]
+    wait_until(lambda: len(observer.clouds_since(t_first)) >= WARM_UP_CLOUDS
+               or time.monotonic() - t_first > WARM_UP_MAX_S, timeout=WARM_UP_MAX_S + 5,
+               what="the warm-up", graph=graph)
+    return t_first - since
+
+
+def at_rate(observer: Observer, graph: Graph, rate: float, seconds: float) -> Window:
+    """The driver's ``rate`` set, ``RATE_SETTLE_S`` to settle, a window of ``seconds``."""
+    observer.set_driver("rate", rate)
+    time.sleep(RATE_SETTLE_S)
+    return measure(observer, graph, rate, seconds)
+
+
+def sweep(observer: Observer, graph: Graph, main: Window, fast: Window,
+          lines: list[str]) -> float:
+    """``e2e.hk.max_bursts_per_s`` from the 5/s and 10/s windows and short windows beyond
+    them (see the module docstring)."""
+    best = max((w.published_per_s for w in (main, fast) if w.lost == 0), default=0.0)
+    if fast.lost == 0:  # up from 10/s while nothing is lost and the driver keeps up
+        rates = SWEEP_UP if fast.published_per_s >= DELIVERED_FRACTION * FAST_RATE_HZ else ()
+        up = True
+    elif main.lost == 0:  # between the two
+        rates = SWEEP_BETWEEN if main.published_per_s >= DELIVERED_FRACTION * RATE_HZ else ()
+        up = True
+    else:  # down from 5/s to the first lossless rate
+        rates, up = SWEEP_DOWN, False
+    for rate in rates:
+        w = at_rate(observer, graph, rate, SWEEP_WINDOW_S)
+        lines.append(f"sweep: {w.line()}")
+        if w.lost == 0:
+            best = max(best, w.published_per_s)
+        if up and (w.lost or w.published_per_s < DELIVERED_FRACTION * rate):
+            break
+        if not up and w.lost == 0:
+            break
+    return best
+
+
+def recorder_status(observer: Observer) -> dict[str, str]:
+    """The recorder's last /diagnostics values (status ``<node>: recording``)."""
+    with observer.seen.lock:
+        for name, values in observer.seen.diagnostics.items():
+            if name.endswith(": recording"):
+                return dict(values)
+    return {}
+
+
+def bag_not_written(bags_dir: Path) -> tuple[int, dict, int] | None:
+    """(messages not written, by topic and reason, messages written) of the finished bag in
+    ``bags_dir`` (metadata.yaml ``custom_data`` ``fingerps.not_written``), None if no
+    finished bag says it."""
+    import yaml
+    metas = sorted(bags_dir.glob("*/metadata.yaml")) if bags_dir.is_dir() else []
+    if not metas:
+        return None
+    info = yaml.safe_load(metas[-1].read_text())["rosbag2_bagfile_information"]
+    custom = (info.get("custom_data") or {}).get("fingerps.not_written")
+    if custom is None:
+        return None
+    by_topic = json.loads(custom)
+    return (sum(sum(reasons.values()) for reasons in by_topic.values()), by_topic,
+            int(info.get("message_count", 0)))
+
+
+def run_print_recorder(observer: Observer, graph: Graph, home: Path,
+                       lines: list[str]) -> dict[str, float]:
+    """The ``e2e.hk_print_rec.*`` figures: the recorder started, recon_node launched again
+    with ``fingerprint:=true``, warm-up, a window at 5/s, the recorder stopped."""
+    prefix = "e2e.hk_print_rec"
+    observer.set_driver("rate", PRINT_RATE_HZ)
+    bags_dir = home / "bags"
+    graph.start("fingerps_recon", "recorder_node", "-p", f"bags_dir:={bags_dir}")
+    graph.stop("recon_node")
+    time.sleep(1.0)  # clouds in flight from the stopped process arrive before
+    t_launch = time.monotonic()
+    graph.start("fingerps_recon", "recon_node", "-p", "model:=hk", "-p", "fingerprint:=true")
+    first = warm_up(observer, graph, t_launch, "the first cloud and print of recon_node "
+                    "with fingerprint:=true", prints=True)
+    lines.append(f"print+recorder: recon_node (fingerprint:=true) start -> first cloud "
+                 f"{first:.1f} s; recorder into {bags_dir}")
+    w = at_rate(observer, graph, PRINT_RATE_HZ, WINDOW_S)
+    lines.append(f"print+recorder: {w.line()}")
+    figures = window_figures(prefix, w)
+    figures[f"{prefix}.prints"] = float(w.prints)
+    figures[f"{prefix}.print_latency_ms_median"] = (
+        float(np.median(w.print_latency_ms)) if w.print_latency_ms else float("nan"))
+    status = recorder_status(observer)
+    observer.set_driver("rate", 0.0)  # the recorder finishes what it has
+    code = graph.stop("recorder_node", RECORDER_STOP_TIMEOUT_S)
+    bag = bag_not_written(bags_dir)
+    if bag is not None:
+        not_written, by_topic, written = bag
+        lines.append(f"print+recorder: recorder exited {code}; its bag: {written} messages "
+                     f"written, not written {by_topic or 'none'}")
+        figures[f"{prefix}.recorder_not_written"] = float(not_written)
+    elif status.get("not_written", "").isdigit():
+        lines.append(f"print+recorder: recorder exited {code} without a finished bag; its "
+                     f"last diagnostics: received {status.get('messages_received')}, written "
+                     f"{status.get('messages_written')}, not written {status['not_written']}")
+        figures[f"{prefix}.recorder_not_written"] = float(status["not_written"])
+    else:
+        lines.append(f"print+recorder: recorder exited {code}; no count of messages not "
+                     "written (no finished bag, no diagnostics)")
+    return figures
+
+
+def run_kiosk(env: dict[str, str], domain_id: int, home: Path,
+              only: frozenset[str] = frozenset(GRAPH_SCENARIOS)) -> dict[str, float]:
+    """The e2e.hk.*, e2e.hk10.*, e2e.hk_print_rec.* figures and e2e.first_cloud_s of the
+    scenarios in ``only`` (see the module docstring)."""
+    if "sweep" in only:
+        only = only | {"kiosk", "kiosk10"}
     log_dir = home / "node_logs"
     log_dir.mkdir()
     graph = Graph(log_dir, env)
     observer: Observer | None = None
     lines: list[str] = []
+    figures: dict[str, float] = {}
     try:
         graph.start("fingerps_driver", "driver_node", "-p", "rate:=0.0")
         graph.start("fingerps_calib", "calib_node", "-p",
@@ -441,66 +638,42 @@ def run_kiosk(env: dict[str, str], domain_id: int, home: Path) -> dict[str, floa
 
         # Warm-up at the kiosk's rate: the first cloud, then 5 clouds or 10 s.
         observer.set_driver("rate", RATE_HZ)
-        t_rate = time.monotonic()
-        wait_until(lambda: observer.clouds_since(t_rate), timeout=FIRST_CLOUD_TIMEOUT_S,
-                   what="the first point cloud", graph=graph)
-        t_first = observer.clouds_since(t_rate)[0]
-        lines.append(f"first cloud {t_first - t_rate:.1f} s after the rate was set")
-        wait_until(lambda: len(observer.clouds_since(t_first)) >= WARM_UP_CLOUDS
-                   or time.monotonic() - t_first > WARM_UP_MAX_S, timeout=WARM_UP_MAX_S + 5,
-                   what="the warm-up", graph=graph)
+        first = warm_up(observer, graph, time.monotonic(), "the first point cloud")
+        lines.append(f"first cloud {first:.1f} s after the rate was set")
 
-        main = measure(observer, graph, RATE_HZ, WINDOW_S)
-        lines.append(main.line())
-        figures = {
-            "e2e.hk.bursts_per_s": main.bursts_per_s,
-            "e2e.hk.published_per_s": main.published_per_s,
-            "e2e.hk.lost": float(main.lost),
-            "e2e.hk.latency_ms_median": (float(np.median(main.latency_ms))
-                                         if main.latency_ms else float("nan")),
-            "e2e.hk.latency_ms_p95": (float(np.percentile(main.latency_ms, 95))
-                                      if main.latency_ms else float("nan")),
-        }
+        t0 = time.monotonic()
+        if "kiosk" in only:
+            main = measure(observer, graph, RATE_HZ, WINDOW_S)
+            lines.append(f"5/s: {main.line()}")
+            figures.update(window_figures("e2e.hk", main))
+        if "kiosk10" in only:
+            fast = at_rate(observer, graph, FAST_RATE_HZ, WINDOW_S)
+            lines.append(f"10/s: {fast.line()}")
+            figures.update(window_figures("e2e.hk10", fast))
+        if "sweep" in only:
+            figures["e2e.hk.max_bursts_per_s"] = sweep(observer, graph, main, fast, lines)
+        lines.append(f"windows and sweep: {time.monotonic() - t0:.0f} s")
 
-        # Sweep: up from 5/s while nothing is lost, or down to the first lossless rate.
-        best = 0.0
-        if main.lost == 0:
-            best = main.published_per_s
-            for rate in SWEEP_UP if main.published_per_s >= DELIVERED_FRACTION * RATE_HZ else ():
-                observer.set_driver("rate", rate)
-                time.sleep(SWEEP_SETTLE_S)
-                w = measure(observer, graph, rate, SWEEP_WINDOW_S)
-                lines.append(w.line())
-                if w.lost == 0:
-                    best = max(best, w.published_per_s)
-                if w.lost or w.published_per_s < DELIVERED_FRACTION * rate:
-                    break
-        else:
-            for rate in SWEEP_DOWN:
-                observer.set_driver("rate", rate)
-                time.sleep(SWEEP_SETTLE_S)
-                w = measure(observer, graph, rate, SWEEP_WINDOW_S)
-                lines.append(w.line())
-                if w.lost == 0:
-                    best = w.published_per_s
-                    break
-        figures["e2e.hk.max_bursts_per_s"] = best
+        if "first_cloud" in only:  # recon_node launched again while the driver runs at 5/s
+            observer.set_driver("rate", RATE_HZ)
+            starts = []
+            for _ in range(FIRST_CLOUD_STARTS):
+                graph.stop("recon_node")
+                time.sleep(1.0)  # clouds in flight from the stopped process arrive before
+                t_launch = time.monotonic()
+                graph.start("fingerps_recon", "recon_node", "-p", "model:=hk")
+                wait_until(lambda t=t_launch: observer.clouds_since(t),
+                           timeout=FIRST_CLOUD_TIMEOUT_S,
+                           what="the first cloud of a restarted recon_node", graph=graph)
+                starts.append(observer.clouds_since(t_launch)[0] - t_launch)
+            lines.append("recon_node start -> first cloud: "
+                         + ", ".join(f"{s:.1f}" for s in starts) + " s")
+            figures["e2e.first_cloud_s"] = float(np.median(starts))
 
-        # Start-up: recon_node launched again while the driver captures at 5/s.
-        observer.set_driver("rate", RATE_HZ)
-        starts = []
-        for _ in range(FIRST_CLOUD_STARTS):
-            graph.stop("recon_node")
-            time.sleep(1.0)  # clouds in flight from the stopped process arrive before
-            t_launch = time.monotonic()
-            graph.start("fingerps_recon", "recon_node", "-p", "model:=hk")
-            wait_until(lambda t=t_launch: observer.clouds_since(t),
-                       timeout=FIRST_CLOUD_TIMEOUT_S,
-                       what="the first cloud of a restarted recon_node", graph=graph)
-            starts.append(observer.clouds_since(t_launch)[0] - t_launch)
-        lines.append("recon_node start -> first cloud: "
-                     + ", ".join(f"{s:.1f}" for s in starts) + " s")
-        figures["e2e.first_cloud_s"] = float(np.median(starts))
+        if "print" in only:
+            t0 = time.monotonic()
+            figures.update(run_print_recorder(observer, graph, home, lines))
+            lines.append(f"print+recorder: {time.monotonic() - t0:.0f} s")
     except (BenchError, DemoError) as exc:  # a step failed: say it with the nodes' logs
         logs = "\n".join(f"{name}:\n{graph.tail(name)}" for name in graph.logs)
         raise BenchError(f"{exc}\n{logs}") from None
@@ -515,24 +688,45 @@ def run_kiosk(env: dict[str, str], domain_id: int, home: Path) -> dict[str, floa
     return figures
 
 
-def run(*, demo_runs: int = DEMO_RUNS) -> dict[str, float]:
+def run(*, demo_runs: int = DEMO_RUNS,
+        only: Collection[str] = SCENARIOS) -> dict[str, float]:
+    """The figures of the scenarios in ``only`` (:data:`SCENARIOS`; the demo's only if
+    ``demo_runs``)."""
     t_start = time.monotonic()
+    graph_only = frozenset(only) & frozenset(GRAPH_SCENARIOS)
+    figures: dict[str, float] = {}
     with own_ros_domain() as domain_id, tempfile.TemporaryDirectory(prefix="bench_e2e_") as tmp:
         home = Path(tmp)
         env = graph_env(domain_id, home)
-        figures = run_kiosk(env, domain_id, home)
-        if demo_runs:
+        if graph_only:
+            figures = run_kiosk(env, domain_id, home, graph_only)
+        if demo_runs and "demo" in only:
             figures = {**run_demo(env, demo_runs), **figures}
     print(f"  {load_line()}; e2e bench took {time.monotonic() - t_start:.0f} s")
     return figures
 
 
+def parse_only(text: str) -> tuple[str, ...]:
+    """``--only``'s comma-separated scenario names, checked against :data:`SCENARIOS`."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in SCENARIOS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown scenario(s) {', '.join(unknown) or '(none given)'}; "
+            f"choose from {','.join(SCENARIOS)}")
+    return names
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--no-demo", action="store_true", help="skip the demo runs")
+    parser.add_argument("--only", type=parse_only, default=SCENARIOS, metavar="NAMES",
+                        help="comma-separated scenarios to run, of " + ",".join(SCENARIOS)
+                        + " (default all; sweep implies kiosk and kiosk10), e.g. "
+                        "--only kiosk10,print")
     args = parser.parse_args(argv)
     with exit_codes("bench_e2e", BenchError, interrupted="the nodes were stopped"):
-        figures = run(demo_runs=0 if args.no_demo else DEMO_RUNS)
+        figures = run(demo_runs=0 if args.no_demo else DEMO_RUNS, only=args.only)
     print_figures(figures)
     return 0
 

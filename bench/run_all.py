@@ -12,7 +12,9 @@ stay), and every benchmark warms up before its timed runs.
 The speed benchmarks and what the AVX2 pass keeps of them (:data:`SPEED`): ``driver.*``,
 ``driver.publish_ms.*``, ``recon.ms.*`` and ``recon.hk_kernel.*`` (not the ``recon.um.*``
 accuracy figures), ``recon.publish_ms.*``/``recon.intake_ms.*``, ``e2e.*`` without the
-demo's runs (the kiosk graph at 5 bursts/s, the rate sweep, the first cloud) and
+demo's runs (the kiosk graph at 5 and at 10 bursts/s, the rate sweep, the first cloud, the
+kiosk at 5 bursts/s with the print and the recorder: ``e2e.hk.*``, ``e2e.hk10.*``,
+``e2e.first_cloud_s``, ``e2e.hk_print_rec.*``) and
 ``fingerprint.<model>.print_ms_median`` (the same captures printed, without NBIS). The
 accuracy benchmarks (``recon.lambert.*`` accuracy, ``calib.*``, the fingerprints' NBIS
 figures) run once, natively.
