@@ -312,14 +312,15 @@ def rig_finger() -> dict[str, object]:
     }
 
 
-def _at_scipy_minimum(inputs: dict[str, object], *, pixels: int = 30) -> None:
-    """The batched solve (A fitted) reaches, at a sample of pixels, the minimum scipy's
-    least_squares (float64) finds for that pixel with A fixed to the batched A, from the
-    same start: normals within 0.05 degrees, albedo within 1e-3, costs within what float32
-    resolves (see test_same_minimum_as_scipy_least_squares_per_pixel)."""
+def _at_scipy_minimum(inputs: dict[str, object], *, pixels: int = 30,
+                      scale: float | None = None) -> None:
+    """The batched solve (A fitted, or held at ``scale``) reaches, at a sample of pixels,
+    the minimum scipy's least_squares (float64) finds for that pixel with A fixed to the
+    batched A, from the same start: normals within 0.05 degrees, albedo within 1e-3, costs
+    within what float32 resolves (see test_same_minimum_as_scipy_least_squares_per_pixel)."""
     inputs = dict(inputs)
     images, lights = inputs.pop("images"), inputs.pop("lights")
-    res = solve_hk(images, lights, **{**inputs, "iterations": 40, "tol": 0.0})
+    res = solve_hk(images, lights, **{**inputs, "iterations": 40, "tol": 0.0, "scale": scale})
     assert res.valid.sum() > 100_000
     usable = np.asarray(inputs["usable"])
     views = np.asarray(inputs.get("views", (0.0, 0.0, 1.0)))
@@ -370,6 +371,37 @@ def test_rig_finger_near_lights_at_the_scipy_minimum(rig_finger: dict[str, objec
         "intensities": (field * np.asarray(rig_finger["intensities"])[:, None, None]).astype(
             np.float32),
     })
+
+
+def test_rig_finger_with_a_held_at_the_scipy_minimum(rig_finger: dict[str, object]) -> None:
+    # A held (the one-pass solve of every burst after the first), at the joint fit's A.
+    _at_scipy_minimum(rig_finger, scale=solve_hk(**rig_finger).scale)
+
+
+def test_held_a_refitted_burst_after_burst_comes_to_the_joint_fit(
+        rig_finger: dict[str, object]) -> None:
+    # Holding each solve at the previous solve's refit is block-coordinate descent on
+    # (pixels, A): its fixed point is the joint minimum. From A 20 % off, the distance to
+    # the jointly fitted A shrinks at every round, and at the jointly fitted A the refit
+    # stays there (to 1e-3: the joint solve's own A is converged only to tol).
+    inputs = dict(rig_finger)
+    images, lights = inputs.pop("images"), inputs.pop("lights")
+    joint = solve_hk(images, lights, **{**inputs, "iterations": 40, "tol": 0.0})
+    held = 0.8 * joint.scale
+    distances = [abs(held - joint.scale)]
+    for _ in range(4):
+        res = solve_hk(images, lights, **inputs, scale=held)
+        assert res.scale == held
+        assert res.cost_history[-1] <= res.cost_history[0]
+        assert 1 <= res.iterations <= inputs["iterations"]
+        held = res.refit_scale
+        distances.append(abs(held - joint.scale))
+    assert all(later < earlier for earlier, later in zip(distances, distances[1:]))
+    at_joint = solve_hk(images, lights, **{**inputs, "iterations": 40, "tol": 0.0},
+                        scale=joint.scale)
+    assert at_joint.refit_scale == pytest.approx(joint.scale, rel=1e-3)
+    # The fitted solve reports its own A as the refit.
+    assert joint.refit_scale == joint.scale
 
 
 def test_prepared_lighting_gives_the_same_solve(rig_finger: dict[str, object]) -> None:

@@ -71,8 +71,16 @@ def test_the_kernels_recompile_after_an_edit_of_symmetric_solve(tmp_path):
 
 
 def test_the_modules_a_kernel_module_inlines_are_found_from_its_kernels():
-    from fingerps_recon.photometric import hk_kernel, lambertian_kernel, symmetric_solve
+    from fingerps_recon.photometric import (
+        hk_kernel,
+        kernel_compile,
+        lambertian_kernel,
+        normal_transform_kernel,
+        symmetric_solve,
+    )
     from fingerps_recon.photometric.kernel_compile import inlined_modules
 
+    # The compile options count as inlined too: an edit of them recompiles every kernel.
     for module in (hk_kernel, lambertian_kernel):
-        assert inlined_modules(vars(module)) == [symmetric_solve]
+        assert inlined_modules(vars(module)) == [kernel_compile, symmetric_solve]
+    assert inlined_modules(vars(normal_transform_kernel)) == [kernel_compile]

@@ -37,6 +37,18 @@ solver on dE/dx = 0; any method reaching the same minimum serves, NOTES §2):
   global linear least-squares fit of A and every rho_j jointly with the normals fixed,
   then rho in closed form for that A.
 
+A held (``scale`` given, e.g. the A a previous burst of the same rig refitted: A depends on
+the skin and the LEDs' power, not on the pose). The pixels are then independent: one
+compiled pass gathers, solves and writes out each chunk of pixels while it stays in the
+core's cache (``hk_kernel.solve_held``), with the same steps (rho in closed form for the
+held A, then Levenberg–Marquardt, each pixel keeping the better of its state and its
+candidate); a chunk stops once the decrease its next steps promise (the Gauss–Newton
+model's, at least (J^T r) . delta) is at most ``tol`` times its cost, so no iteration is
+evaluated only to find that it gained nothing. ``HKResult.refit_scale`` is A's linear fit
+with every rho at the solution's normals: holding each burst at the previous burst's refit
+is block-coordinate descent across bursts, whose fixed point is the joint minimum (the
+pixels' gradients vanish at their solution, A's at its linear fit).
+
 The derivatives dS/dc_i and dS/dc_r of S = c_i / (c_i + c_r) (1 - E) contain 1/c_i and 1/c_r
 and blow up as c_i or c_r -> 0; those factors are capped at 1 / ``_DERIVATIVE_FLOOR`` (the
 model values are not changed), so the Jacobian stays finite. The optical-depth exponential
@@ -125,7 +137,13 @@ class HKResult:
         Levenberg–Marquardt iterations performed.
     cost_history : tuple of float
         Total cost E = sum (I - f)^2 over the valid pixels' usable measurements, after the
-        initialisation and after each iteration; non-increasing.
+        initialisation and after each iteration; non-increasing. With A held (``scale``
+        given), after the initialisation and at the end (each chunk of pixels iterates on
+        its own; ``iterations`` is the most any chunk did).
+    refit_scale : float
+        A's linear least-squares fit (with every rho) at the solution's normals: with A
+        fitted, ``scale`` itself; with A held, where the next burst of the same rig should
+        hold it (NaN if no pixel was valid).
     """
 
     normals: np.ndarray
@@ -135,6 +153,7 @@ class HKResult:
     residual_rms: np.ndarray
     iterations: int
     cost_history: tuple[float, ...]
+    refit_scale: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -355,7 +374,9 @@ def _solve(
     k, h, w = imgs.shape
     hw = h * w
     f32 = np.float32
-    if imgs.dtype not in (np.float32, np.float64):  # (integers: exact in float32)
+    # A camera's uint8 images are read as they are (the kernels convert each value; integers
+    # are exact in float32); other integers become float32.
+    if imgs.dtype not in (np.uint8, np.float32, np.float64):
         imgs = imgs.astype(f32)
     imgs = np.ascontiguousarray(imgs).reshape(k, hw)
     use_in = (imgs > 0 if usable is None else np.ascontiguousarray(usable).reshape(k, hw))
@@ -364,6 +385,9 @@ def _solve(
     if cand.size == 0:
         return _nothing_valid((h, w), scale)
     chunks = -(-cand.size // kernel.CHUNK)
+    if not fit:
+        return _solve_held(kernel, imgs, lighting, cand, n_in, rho_in, use_in, chunks,
+                           scale=float(scale), iterations=iterations, tol=tol)
     padded = chunks * kernel.CHUNK
     meas = np.empty((chunks, k, kernel.N_MEAS, kernel.CHUNK), f32)
     v_dirs = np.empty((3, padded), f32)
@@ -377,16 +401,7 @@ def _solve(
                   counts, flags)
     if not solved.any():
         return _nothing_valid((h, w), scale)
-    bits = int(np.bitwise_or.reduce(flags))
-    for name, non_finite, zero in (
-        ("lights", kernel.BAD_LIGHT, kernel.ZERO_LIGHT),
-        ("views", kernel.BAD_VIEW, kernel.ZERO_VIEW),
-    ):
-        if bits & non_finite:
-            raise FingerpsReconError(
-                f"{name} contain non-finite values inside the mask; check the calibration")
-        if bits & zero:
-            raise FingerpsReconError(f"{name} contain zero vectors inside the mask")
+    _check_flags(kernel, flags)
     passes = _Passes(kernel, (meas, v_dirs), tau=float(lighting.params.optical_depth), n=n0,
                      rho=rho0)
     a_scale, history, done = _minimise(
@@ -401,8 +416,72 @@ def _solve(
     return HKResult(
         normals=normals.reshape(h, w, 3), albedo=albedo.reshape(h, w), scale=float(a_scale),
         valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w), iterations=done,
-        cost_history=tuple(history),
+        cost_history=tuple(history), refit_scale=float(a_scale),
     )
+
+
+def _solve_held(
+    kernel: ModuleType, imgs: np.ndarray, lighting: HKLighting, cand: np.ndarray,
+    normals_in: np.ndarray, albedo_in: np.ndarray, usable: np.ndarray, chunks: int, *,
+    scale: float, iterations: int, tol: float,
+) -> HKResult:
+    """:func:`_solve` with A held at ``scale``: the pixels are independent, so one compiled
+    pass gathers, solves and writes out each chunk while it is in the core's cache
+    (:func:`photometric.hk_kernel.solve_held`), and A's linear fit at the solution is
+    the ``refit_scale`` for the next burst."""
+    hw = imgs.shape[1]
+    h, w = lighting.shape
+    solved = np.zeros(cand.size, bool)
+    counts = np.zeros(cand.size, np.float64)
+    normals = np.zeros((hw, 3), np.float32)
+    albedo = np.zeros(hw, np.float32)
+    rms = np.zeros(hw, np.float32)
+    valid = np.zeros(hw, bool)
+    flags = np.zeros(chunks, np.uint8)
+    parts = np.zeros((chunks, 5), np.float64)
+    tau = float(lighting.params.optical_depth)
+    kernel.solve_held(cand, lighting.index, imgs, usable, normals_in, albedo_in,
+                      lighting.terms, lighting.views, lighting.bad, _MIN_INIT_CR, scale,
+                      np.float32(scale * tau), np.float32(-tau), _consts(kernel),
+                      np.float32(_LAMBDA_START), iterations, tol, solved, counts, normals,
+                      albedo, rms, valid, flags, parts)
+    _check_flags(kernel, flags)
+    if not solved.any():
+        return _nothing_valid((h, w), scale)
+    initial, final, _, num, den = parts.sum(axis=0)
+    return HKResult(
+        normals=normals.reshape(h, w, 3), albedo=albedo.reshape(h, w), scale=scale,
+        valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w),
+        iterations=int(parts[:, 2].max()), cost_history=(float(initial), float(final)),
+        refit_scale=max(num / den, 0.0) if den > 0 else scale,
+    )
+
+
+def _check_flags(kernel: ModuleType, flags: np.ndarray) -> None:
+    """Raise if the ``bad`` bits of the solved pixels (per chunk) flag a direction."""
+    bits = int(np.bitwise_or.reduce(flags))
+    for name, non_finite, zero in (
+        ("lights", kernel.BAD_LIGHT, kernel.ZERO_LIGHT),
+        ("views", kernel.BAD_VIEW, kernel.ZERO_VIEW),
+    ):
+        if bits & non_finite:
+            raise FingerpsReconError(
+                f"{name} contain non-finite values inside the mask; check the calibration")
+        if bits & zero:
+            raise FingerpsReconError(f"{name} contain zero vectors inside the mask")
+
+
+def _consts(kernel: ModuleType) -> np.ndarray:
+    """The kernels' float32 constants (floors, damping factors), indexed as in
+    :mod:`photometric.hk_kernel`."""
+    consts = np.zeros(kernel.N_CONSTS, np.float32)
+    for index, value in (
+        (kernel.VALUE_FLOOR, _VALUE_FLOOR), (kernel.DERIVATIVE_FLOOR, _DERIVATIVE_FLOOR),
+        (kernel.LAMBDA_DOWN, _LAMBDA_DOWN), (kernel.LAMBDA_UP, _LAMBDA_UP),
+        (kernel.LAMBDA_MIN, _LAMBDA_MIN), (kernel.LAMBDA_MAX, _LAMBDA_MAX),
+    ):
+        consts[index] = value
+    return consts
 
 
 def _float_array(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -499,14 +578,7 @@ class _Passes:
         self.chunks = count // kernel.CHUNK
         self.tau = tau
         self.neg_tau = f32(-tau)
-        consts = np.zeros(kernel.N_CONSTS, f32)
-        for index, value in (
-            (kernel.VALUE_FLOOR, _VALUE_FLOOR), (kernel.DERIVATIVE_FLOOR, _DERIVATIVE_FLOOR),
-            (kernel.LAMBDA_DOWN, _LAMBDA_DOWN), (kernel.LAMBDA_UP, _LAMBDA_UP),
-            (kernel.LAMBDA_MIN, _LAMBDA_MIN), (kernel.LAMBDA_MAX, _LAMBDA_MAX),
-        ):
-            consts[index] = value
-        self.consts = consts
+        self.consts = _consts(kernel)
         self.lam = np.full(count, _LAMBDA_START, f32)
         self.sums = np.zeros((_N_SUMS, count), f32)
         self.sums_new = np.zeros((_N_SUMS, count), f32)

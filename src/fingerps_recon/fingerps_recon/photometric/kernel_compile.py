@@ -1,8 +1,11 @@
 """How the reconstruction's per-pixel kernels are compiled (numba), in one place.
 
-Every kernel is ``numba.njit`` with IEEE arithmetic (``fastmath=False``), numpy's error
-model (a division by zero gives inf/NaN, not an exception), the GIL released (the node's
-executor keeps taking messages meanwhile) and numba's on-disk cache (``cache=True``:
+Every kernel is ``numba.njit`` with IEEE arithmetic but one licence, ``contract``: LLVM may
+fuse a multiplication and an addition into one FMA instruction (one rounding instead of
+two: a result differs from the unfused one by about an ulp of each fused term; no
+reassociation, no approximate division or functions, NaN and infinity kept), numpy's
+error model (a division by zero gives inf/NaN, not an exception), the GIL released (the
+node's executor keeps taking messages meanwhile) and numba's on-disk cache (``cache=True``:
 ``__pycache__`` beside the source when writable, else the user's cache directory, or
 ``NUMBA_CACHE_DIR``), so that a process loads instead of compiling
 (:mod:`photometric.kernel_warm_up`). Where no cache directory is writable the kernel is
@@ -19,7 +22,7 @@ from types import ModuleType
 
 import numba
 
-_OPTIONS = {"fastmath": False, "error_model": "numpy", "nogil": True}
+_OPTIONS = {"fastmath": {"contract"}, "error_model": "numpy", "nogil": True}
 
 
 def _compile(fn: Callable, **options: object) -> Callable:
@@ -51,22 +54,25 @@ def inline_kernel(fn: Callable) -> Callable:
 
 def inlined_modules(kernels: dict[str, object]) -> list[ModuleType]:
     """The modules, other than the one of ``kernels`` (a module's ``globals()``), whose
-    functions it compiles (``inline_kernel(imported_function)``)."""
+    functions it compiles (``inline_kernel(imported_function)``), and this one (the
+    compile options)."""
     own = kernels.get("__name__")
     names = {getattr(getattr(kernel, "py_func", None), "__module__", own)
              for kernel in kernels.values() if isinstance(kernel, numba.core.dispatcher.Dispatcher)}
-    return [sys.modules[name] for name in sorted(names - {own}) if name in sys.modules]
+    names = (names | {__name__}) - {own}
+    return [sys.modules[name] for name in sorted(names) if name in sys.modules]
 
 
 def drop_stale_caches(kernels: dict[str, object],
                       inlined: Iterable[ModuleType] | None = None) -> int:
     """Delete the on-disk cache of the kernels among ``kernels`` (a module's ``globals()``)
-    that is older than a module whose functions they inline (``inlined``; by default
-    :func:`inlined_modules`); return how many files.
+    that is older than a module whose functions they inline or than the compile options
+    (``inlined``; by default :func:`inlined_modules`); return how many files.
 
     Numba keys a kernel's cache to the kernel's own source and bytecode: after an edit of an
-    inlined module (e.g. ``symmetric_solve``) alone, the old machine code would be loaded.
-    Called at the import of each kernel module, before any kernel runs (a few stat calls)."""
+    inlined module (e.g. ``symmetric_solve``) or of the options alone, the old machine code
+    would be loaded. Called at the import of each kernel module, before any kernel runs (a
+    few stat calls)."""
     if inlined is None:
         inlined = inlined_modules(kernels)
     newest = max((Path(module.__file__).stat().st_mtime for module in inlined

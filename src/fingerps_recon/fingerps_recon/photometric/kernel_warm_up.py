@@ -3,9 +3,10 @@
 The first call of a numba kernel in a process compiles it (tens of seconds on a small CPU)
 or loads it from numba's on-disk cache (about a second); either would fall on the first
 burst. :func:`warm_up_kernels` reconstructs a tiny synthetic burst through
-:func:`photometric.pipeline.reconstruct` -- near and distant lights, the HK model, the
-dtypes a camera gives -- so every kernel the pipeline calls is ready afterwards, and says
-how many were compiled and how many loaded from the cache.
+:func:`photometric.pipeline.reconstruct_prepared` -- near and distant lights, the HK model
+(A fitted, then held as for the bursts after the first), the dtypes a camera gives -- so
+every kernel the pipeline calls is ready afterwards, and says how many were compiled and
+how many loaded from the cache.
 
 ``make build`` runs this module (``python -m fingerps_recon.photometric.kernel_warm_up``)
 so that the cache is filled during the build; ``recon_node`` calls :func:`warm_up_kernels` in its
@@ -26,7 +27,8 @@ from fingerps_recon.photometric.pipeline import (
     Model,
     Projection,
     ReconstructionOptions,
-    reconstruct,
+    prepare_calibration,
+    reconstruct_prepared,
 )
 from fingerps_recon.surface import print_kernel
 
@@ -73,12 +75,17 @@ def warm_up_kernels() -> WarmUp:
     images, lights, leds, k_matrix, portions = _synthetic_burst()
     for led_positions in (leds, None):
         for model in (Model.HK, Model.LAMBERT):
-            reconstruct(images, lights_ps=lights, camera_matrix=k_matrix, full_scale=255.0,
-                        intensities=np.ones(_LEDS), portions=portions,
-                        led_positions_optical=led_positions,
-                        options=ReconstructionOptions(model=model, hk_iterations=2,
-                                                      enhance=True,
-                                                      projection=Projection.PERSPECTIVE))
+            options = ReconstructionOptions(model=model, hk_iterations=2, enhance=True,
+                                            projection=Projection.PERSPECTIVE)
+            prepared = prepare_calibration(
+                lights, camera_matrix=k_matrix, shape=images.shape[1:],
+                intensities=np.ones(_LEDS), portions=portions,
+                led_positions_optical=led_positions, options=options)
+            # HK: a first burst fits A, the next ones hold it (recon_node's sequence).
+            scale = None
+            for _ in range(2 if model is Model.HK else 1):
+                scale = reconstruct_prepared(images, prepared, full_scale=255.0,
+                                             options=options, hk_initial_scale=scale).hk_scale
     compiled, loaded, modules = _cache_stats()
     return WarmUp(seconds=time.perf_counter() - start, compiled=compiled, loaded=loaded,
                   modules=modules)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fingerps_recon.photometric.kernel_compile import serial_kernel
+from fingerps_recon.photometric.kernel_compile import drop_stale_caches, serial_kernel
 
 
 @serial_kernel
@@ -47,3 +47,7 @@ def enhance_planes(x, y, z, sx, sy, sz, gain, one_k):
             x[r, c] = ex * inv_e
             y[r, c] = ey * inv_e
             z[r, c] = ez * inv_e
+
+
+# After an edit of the compile options, the cached kernels are compiled anew.
+drop_stale_caches(globals())

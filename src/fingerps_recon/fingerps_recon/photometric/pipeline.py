@@ -71,14 +71,13 @@ class ReconstructionOptions:
 
     model: Model = Model.LAMBERT
     hk_iterations: int = 5
-    """At most this many Levenberg–Marquardt iterations of the HK solver (converged on the
-    simulated finger at 5 from the linear fit of A)."""
+    """At most this many Levenberg–Marquardt iterations of the HK solver."""
     hk_tol: float = 1e-3
-    """The HK iterations stop once one lowers the cost by less than this fraction of it.
-    Started from the previous burst's A (``reconstruct_prepared(hk_initial_scale=...)``, as
-    recon_node and scan_node do), the solve on the simulated finger stops after 3 (cost
-    decrease 1.8e-4 there, then 1.6e-6; mean error 1.263 deg, 1.264 converged); from the
-    linear fit of A (a first burst) it runs all 5."""
+    """The HK iterations stop once one lowers the cost by less than this fraction of it
+    (A fitted: a first burst), or once the next steps promise no more than that (A held at
+    the previous burst's refit, ``reconstruct_prepared(hk_initial_scale=...)``, as
+    recon_node and scan_node do; per chunk of pixels). ``bench/bench_recon_accuracy.py``
+    and ``bench/bench_hk_iterations.py`` measure the error against the iterations."""
     projection: Projection = Projection.PERSPECTIVE
     mask_threshold: float = 0.15
     shadow_fraction: float = 0.02
@@ -103,7 +102,7 @@ class Reconstruction:
     height_m: np.ndarray            # (H, W) float32, relief towards the camera, NaN outside
     points_optical: np.ndarray      # (N, 3) float32, metres
     point_albedo: np.ndarray        # (N,) float32
-    hk_scale: float | None = None   # the HK model's fitted global scale A
+    hk_scale: float | None = None   # the HK model's global scale A fitted at the solution
     residual: float | None = None   # Lambertian fit: rms(I - rho n.l) / mean(I), valid pixels
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -276,9 +275,11 @@ def reconstruct_prepared(
 ) -> Reconstruction:
     """Reconstruct one burst with a calibration prepared by :func:`prepare_calibration`
     (with the same ``options``); the other parameters as :func:`reconstruct`.
-    ``hk_initial_scale``: where the HK fit of the global scale A starts, e.g. the A of the
-    previous burst with this calibration (``Reconstruction.hk_scale``): the fit then needs
-    fewer iterations than from the linear fit it otherwise starts from."""
+    ``hk_initial_scale``: the HK model's global scale A to hold, e.g. the previous burst's
+    ``Reconstruction.hk_scale`` with this calibration: the pixels are then independent and
+    solved in one pass (:func:`photometric.hk_solver.solve_hk_prepared` with ``scale``),
+    and ``Reconstruction.hk_scale`` is A refitted at this burst's solution, for the next.
+    None: A is fitted jointly with the pixels (a first burst)."""
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     stack, brightest = _checked_stack(images, prepared.light_count, full_scale=full_scale,
@@ -334,10 +335,10 @@ def reconstruct_prepared(
             lights, shape=shape, views=prepared.views, intensities=light_power)
         usable = (stack > shadow_level) & (stack < limit)
         hk = solve_hk_prepared(stack, lighting, mask=valid, init_normals=normals,
-                               init_albedo=albedo, usable=usable,
-                               initial_scale=hk_initial_scale,
+                               init_albedo=albedo, usable=usable, scale=hk_initial_scale,
                                iterations=options.hk_iterations, tol=options.hk_tol)
-        normals, albedo, valid, hk_scale = hk.normals, hk.albedo, hk.valid & valid, hk.scale
+        normals, albedo, valid = hk.normals, hk.albedo, hk.valid & valid
+        hk_scale = hk.refit_scale
         timings["hk"] = (time.perf_counter() - t1) * 1e3
     # Both solvers give float32 normals and albedo that are zero where they are not valid.
 

@@ -56,8 +56,9 @@ class PreparedCalibrations:
     """The calibration prepared for the bursts' camera (``prepare_calibration``): kept while
     the light calibration, the flat field, the camera matrix, the image size, the working
     distance, the projection and the model stay the same; prepared again when one changes.
-    With it the HK model's global scale A of the last burst (``hk_scale``), where the next
-    burst's fit of A starts (A depends on the skin and the LEDs' power, not on the pose)."""
+    With it the HK model's global scale A refitted at the last burst's solution
+    (``hk_scale``), at which the next burst holds A (A depends on the skin and the LEDs'
+    power, not on the pose; ``reconstruct_prepared(hk_initial_scale=...)``)."""
 
     def __init__(self) -> None:
         self._key: tuple | None = None
@@ -65,7 +66,7 @@ class PreparedCalibrations:
         self._prepared: PreparedCalibration | None = None
         self.count = 0  # calibrations prepared so far
         self.seconds = 0.0  # time the last preparation took
-        self.hk_scale: float | None = None  # the HK model's A of the last burst
+        self.hk_scale: float | None = None  # the HK model's A refitted at the last burst
 
     def get(self, lights: LightCalibration, flat_maps: np.ndarray | None,
             camera_matrix: np.ndarray, shape: tuple[int, int],
@@ -110,7 +111,7 @@ def reconstruct_burst(burst: Burst, lights: LightCalibration, flat_maps: np.ndar
                                   dark=inputs.dark, options=options,
                                   hk_initial_scale=cache.hk_scale)
     if result.hk_scale is not None and math.isfinite(result.hk_scale):
-        cache.hk_scale = result.hk_scale  # where the next burst's fit of A starts
+        cache.hk_scale = result.hk_scale  # where the next burst holds A
     if cache.count != count:  # prepared for this burst: say what it cost
         result.timings_ms["calibration"] = cache.seconds * 1e3
     result.timings_ms["total"] = (time.perf_counter() - start) * 1e3
