@@ -16,8 +16,8 @@ demo's runs (the kiosk graph at 5 and at 10 bursts/s, the rate sweep, the first 
 kiosk at 5 bursts/s with the print and the recorder: ``e2e.hk.*``, ``e2e.hk10.*``,
 ``e2e.first_cloud_s``, ``e2e.hk_print_rec.*``) and
 ``fingerprint.<model>.print_ms_median`` (the same captures printed, without NBIS). The
-accuracy benchmarks (``recon.lambert.*`` accuracy, ``calib.*``, the fingerprints' NBIS
-figures) run once, natively.
+accuracy benchmarks (``recon.lambert.*`` accuracy, ``recon.hk_iter.*``, ``calib.*``, the
+fingerprints' NBIS figures) run once, natively.
 
 results.json is one flat JSON object: name -> number for the native figures (as before),
 ``<name>.avx2`` beside each speed figure for the AVX2 pass, and ``machine.*`` (see
@@ -48,6 +48,7 @@ import bench_driver
 import bench_driver_publish
 import bench_e2e
 import bench_fingerprint
+import bench_hk_iterations
 import bench_many_lights
 import bench_recon_accuracy
 import bench_recon_publish
@@ -59,8 +60,8 @@ SEPARATE_PREFIXES = ("soak.",)
 """Figures of benchmarks not in ``make bench`` (``make soak``), kept when it rewrites the file."""
 
 BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_publish,
-              bench_recon_accuracy, bench_many_lights, bench_calib, bench_e2e,
-              bench_fingerprint)
+              bench_recon_accuracy, bench_hk_iterations, bench_many_lights, bench_calib,
+              bench_e2e, bench_fingerprint)
 
 AVX2_SUFFIX = ".avx2"
 
