@@ -8,6 +8,8 @@ session compiles the kernels or loads them from numba's on-disk cache.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from analytic_surfaces import sphere_normals
@@ -396,7 +398,7 @@ def test_held_a_refitted_burst_after_burst_comes_to_the_joint_fit(
         assert 1 <= res.iterations <= inputs["iterations"]
         held = res.refit_scale
         distances.append(abs(held - joint.scale))
-    assert all(later < earlier for earlier, later in zip(distances, distances[1:]))
+    assert all(later < earlier for earlier, later in itertools.pairwise(distances))
     at_joint = solve_hk(images, lights, **{**inputs, "iterations": 40, "tol": 0.0},
                         scale=joint.scale)
     assert at_joint.refit_scale == pytest.approx(joint.scale, rel=1e-3)
