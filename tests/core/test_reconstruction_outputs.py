@@ -76,6 +76,16 @@ def test_each_output_is_built_only_when_asked_for(monkeypatch: pytest.MonkeyPatc
     assert next(made).topic == topics.NORMAL_MAP and drawn == [1]
 
 
+def test_only_the_outputs_asked_for_are_built(monkeypatch: pytest.MonkeyPatch) -> None:
+    drawn: list[int] = []
+    monkeypatch.setattr(outputs, "normal_map_rgb",
+                        lambda n, *, mask: drawn.append(1) or normal_map_rgb(n, mask=mask))
+    made = list(output_messages(reconstruction(enhanced=True), HEADER,
+                                (topics.POINTS, topics.DEPTH)))
+    assert [o.topic for o in made] == [topics.DEPTH, topics.POINTS] and not drawn
+    assert list(output_messages(reconstruction(enhanced=True), HEADER, ())) == []
+
+
 def test_the_fingerprint_message_is_mono8_in_the_prints_frame() -> None:
     image = np.arange(12, dtype=np.uint8).reshape(3, 4)
     msg = fingerprint_message(image, HEADER.stamp)

@@ -121,6 +121,11 @@ class CompressedTopics:
         """Whether the companion is advertised (``enable_pub_plugins`` lists it)."""
         return self._publisher is not None
 
+    @property
+    def watched(self) -> bool:
+        """Whether the companion is advertised and someone subscribes to it."""
+        return self._publisher is not None and self._publisher.get_subscription_count() > 0
+
     def publish(self, image: np.ndarray, encoding: str, header: Header) -> None:
         """Encode ``image`` (the raw message's pixels, of ``encoding``) and publish it with
         ``header`` on the companion, if it is enabled and has a subscriber. Never raises:

@@ -90,11 +90,15 @@ class ReconNode(Node):
         self.get_logger().info("recon ready: waiting for a light calibration and bursts")
 
     def _publish(self, made: BurstReconstruction, burst: Burst) -> bool:
-        """Publish what a burst made: the outputs, the print if asked for (False when it
-        could not be made), then the compressed companions."""
+        """Publish what a burst made: the outputs someone subscribes to (raw or compressed),
+        the print if asked for (False when it could not be made), then the compressed
+        companions."""
         header, publishers = burst.header, self._publishers_by_topic
         companions: dict[str, tuple[np.ndarray, str]] = {}
-        for output in output_messages(made.result, header):
+        wanted = [topic for topic in OUTPUT_TOPICS
+                  if publishers[topic].get_subscription_count() > 0
+                  or (topic in self._compressed and self._compressed[topic].watched)]
+        for output in output_messages(made.result, header, wanted):
             publishers[output.topic].publish(output.message)
             if output.topic in self._compressed:
                 companions[output.topic] = (output.array, output.encoding)

@@ -3,12 +3,13 @@ normal map, depth, albedo, the point cloud, and the fingerprint.
 
 :func:`output_messages` builds each message only when the caller asks for the next one, so
 that the caller publishes each before the next is converted (the subscribers get the first
-output sooner).
+output sooner), and only those of the topics asked for (recon_node: the topics someone
+subscribes to, as image_transport publishes nothing while nobody watches).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from typing import NamedTuple
 
 import numpy as np
@@ -38,21 +39,28 @@ class Output(NamedTuple):
     encoding: str
 
 
-def output_messages(result: Reconstruction, header: Header) -> Iterator[Output]:
+def output_messages(result: Reconstruction, header: Header,
+                    wanted: Collection[str] = OUTPUT_TOPICS) -> Iterator[Output]:
     """The outputs of one burst with the burst's ``header``, in :data:`OUTPUT_TOPICS`'s
-    order: the normals (32FC3, optical frame), the normal map (rgb8, of the enhanced normals
-    if there are any), depth and albedo (32FC1), the points (x y z intensity)."""
-    normals_optical = normals_array(result)
-    yield Output(topics.NORMALS, array_to_image(normals_optical, encoding="32FC3",
-                                                header=header), normals_optical, "32FC3")
-    rgb = normal_map_array(result)
-    yield Output(topics.NORMAL_MAP, array_to_image(rgb, encoding="rgb8", header=header), rgb,
-                 "rgb8")
+    order, of the topics in ``wanted`` (default all): the normals (32FC3, optical frame),
+    the normal map (rgb8, of the enhanced normals if there are any), depth and albedo
+    (32FC1), the points (x y z intensity)."""
+    if topics.NORMALS in wanted:
+        normals_optical = normals_array(result)
+        yield Output(topics.NORMALS, array_to_image(normals_optical, encoding="32FC3",
+                                                    header=header), normals_optical, "32FC3")
+    if topics.NORMAL_MAP in wanted:
+        rgb = normal_map_array(result)
+        yield Output(topics.NORMAL_MAP, array_to_image(rgb, encoding="rgb8", header=header),
+                     rgb, "rgb8")
     for topic, image in ((topics.DEPTH, result.depth_m), (topics.ALBEDO, result.albedo)):
-        yield Output(topic, array_to_image(image, encoding="32FC1", header=header), image,
-                     "32FC1")
-    yield Output(topics.POINTS, points_to_cloud(result.points_optical, result.point_albedo,
-                                                header=header), None, "")
+        if topic in wanted:
+            yield Output(topic, array_to_image(image, encoding="32FC1", header=header), image,
+                         "32FC1")
+    if topics.POINTS in wanted:
+        yield Output(topics.POINTS, points_to_cloud(result.points_optical,
+                                                    result.point_albedo, header=header),
+                     None, "")
 
 
 def normals_array(result: Reconstruction) -> np.ndarray:
