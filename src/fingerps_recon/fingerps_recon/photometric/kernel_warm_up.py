@@ -30,7 +30,7 @@ from fingerps_recon.photometric.pipeline import (
     prepare_calibration,
     reconstruct_prepared,
 )
-from fingerps_recon.surface import print_kernel
+from fingerps_recon.surface import integration, print_kernel
 
 # Modules holding numba kernels (cache=True), counted in the report.
 KERNEL_MODULES = ("fingerps_recon.photometric.hk_kernel",
@@ -68,10 +68,13 @@ class WarmUp:
 
 def warm_up_kernels() -> WarmUp:
     """Compile or load every kernel the pipeline uses by reconstructing a tiny synthetic
-    burst (a Lambertian hemisphere under near and distant lights) with the HK model, and
-    the rolled print's kernels (:func:`fingerps_recon.surface.print_kernel.warm_up`)."""
+    burst (a Lambertian hemisphere under near and distant lights) with the HK model, the
+    integration's (:func:`fingerps_recon.surface.integration.warm_up`: the burst's mask is
+    one component, which leaves one kernel out) and the rolled print's
+    (:func:`fingerps_recon.surface.print_kernel.warm_up`)."""
     start = time.perf_counter()
     print_kernel.warm_up()
+    integration.warm_up()
     images, lights, leds, k_matrix, portions = _synthetic_burst()
     for led_positions in (leds, None):
         for model in (Model.HK, Model.LAMBERT):

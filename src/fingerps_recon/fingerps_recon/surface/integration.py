@@ -39,38 +39,63 @@ edge do not bend the surface, unlike a Frankot–Chellappa solve over the whole 
 
 Solvers (:class:`IntegrationMethod`)
 ------------------------------------
-Both solve that same masked system by conjugate gradients preconditioned with the exact
-inverse of the Laplacian of a bounding *rectangle*, applied by a DCT-II (the discrete
-Frankot–Chellappa / Neumann Poisson solver): the residual is extended by zero to the
-rectangle, solved there and restricted back. This fictitious-domain preconditioner suits a
-Neumann problem: for a compact, fingertip-like mask the iteration count hardly grows with its
-size. The first iteration *is* the Frankot–Chellappa solution on the bounding box with the
-gradients outside the mask set to zero; the rest correct it for the mask's shape, whose
-effect is a smooth (discrete harmonic) correction driven from the mask's outline.
+Both solve that same masked system by conjugate gradients preconditioned with the
+pseudo-inverse of the Neumann Laplacian L of a bounding *rectangle* (the discrete
+Frankot–Chellappa solver, diagonal in the DCT-II basis): the residual is extended by zero to
+the rectangle, solved there and restricted back. This fictitious-domain preconditioner suits
+a Neumann problem: for a compact, fingertip-like mask the iteration count hardly grows with
+its size. Applied to b it gives the Frankot–Chellappa solution on the rectangle with the
+steps outside the mask set to zero; the iterations correct it for the mask's shape, a
+smooth (discrete harmonic) correction driven from the mask's outline.
 
-``EXACT`` (the reference): each connected component is solved separately to a relative
-residual of ``tol`` (default 1e-6) in float64 with a sparse matrix; a component that has not
-converged after ``max_iter`` iterations (comb-like masks, long one-pixel tendrils: nearly
-one-dimensional graphs) is solved by a sparse direct factorisation instead, and components of
-fewer than ``_SMALL_COMPONENT`` pixels by one joint sparse direct solve. About 130 ms for the
-simulated finger (172 000 pixels) on the two-core machine, most of it sparse-matrix set-up and
-gathers.
+``EXACT`` (the reference): steps in float64, each connected component solved separately to
+a relative residual of ``tol`` (default 1e-6) in float64 with a sparse matrix and a 2-D DCT
+preconditioner on the component's rectangle; a component that has not converged after
+``max_iter`` iterations (comb-like masks, long one-pixel tendrils: nearly one-dimensional
+graphs) is solved by a sparse direct factorisation instead, and components of fewer than
+``_SMALL_COMPONENT`` pixels by one joint sparse direct solve.
 
-``FAST`` (the default): the whole mask at once on its bounding box (the box's sides rounded
-up to FFT-friendly lengths), in float32, with the Laplacian applied as a 4-neighbour stencil
-(``cv2.filter2D``) instead of a sparse matrix, to a relative residual of ``tol`` (default
-``FAST_TOL`` = 1e-4). The mean steps (a tilted plane, which satisfies every edge equation
-exactly) are taken out first and added back at the end, so a plane costs no iteration and the
-Frankot–Chellappa start is closer. Per iteration: one stencil product and one DCT pair of the
-box. On the simulated finger (bounding box 432 x 459, padded to 432 x 480) it takes 4
-iterations after the start, ~20 ms on the busy two-core machine (EXACT: 130-160 ms; about
-8 ms of it are the 5 DCT pairs), and differs from ``EXACT`` by ~0.03 um RMS (heights
-spanning 5 mm), far below the error against the true surface (~1 um from the true normals
-with the perspective model, 100-200 um with the orthographic one or from Lambertian
-normals); measurements in ``bench/bench_recon_speed.py``. A looser ``tol`` = 1e-3 saves
-one DCT pair and still differs by only ~0.2 um RMS. If it has not converged after
-``min(max_iter, FAST_MAX_ITER)`` iterations (the comb-like masks ``EXACT`` solves directly)
-it falls back to ``EXACT``.
+``FAST`` (the default): float32, the whole mask at once on its bounding box, in compiled
+loops (:mod:`surface.integration_kernel`):
+
+- One pass over the box computes each pixel's steps from its normal, b, the moments of b and
+  the mask's runs (maximal horizontal segments of mask pixels). From the runs alone come the
+  4-connected components (union-find), the *outline* (the mask pixels with a 4-neighbour in
+  the rectangle but outside the mask) and the Gram matrix V^T A V of the monomials s^a t^b,
+  1 <= a + b <= 5, in the box's coordinates s, t scaled to [-1, 1] (sums over the mask's
+  edges, from prefix sums along the runs).
+- Start: the polynomial q0 = V c closest to the solution in the A-norm, V^T A V c = V^T b:
+  the smooth bulk of the surface, exactly the solution when that is such a polynomial (a
+  tilted plane costs no iteration). The rest, A y = b - A q0, by conjugate gradients whose
+  first step is taken whole (step length 1): the Frankot–Chellappa solution of the rest on
+  the rectangle. Where a pixel and its four neighbours are all in the mask, A equals L, so
+  from then on the residual is zero but on the outline pixels: the scalar products, A d and
+  the residual's update cost a few thousand pixels, and the next preconditioner input is
+  sparse.
+- The preconditioner L^+: a DCT-II along the rows (pocketfft), a tridiagonal solve down each
+  column (Thomas' algorithm for T + mu_k I, the pivots kept per row length), the inverse
+  DCT: half the transforms of a 2-D DCT pair. Only the rows are rounded up to an
+  FFT-friendly length (the rectangle is otherwise the mask's bounding box: the less outside
+  the mask, the better the preconditioner). A sparse residual's row transform is summed
+  directly from the few outline pixels of each row.
+- End: the polynomial correction closest to the remaining error, V^T A V c = V^T r (the same
+  Gram matrix; r on the outline), which takes out most of the smooth error the iterations
+  leave. Then each component's mean is taken out and, for a depth, the exponential taken (a
+  float64 Taylor polynomial, the exponent halved and the result squared as often as
+  needed), in the pass that writes the output: with one component its mean is known
+  before (the sums of the directions, kept by the steps, and the mask's moments of the
+  polynomial), with several a second pass follows.
+
+Each iteration costs one preconditioner application and one pass over the box. The
+residual ``tol`` (default ``FAST_TOL`` = 3e-3) is relative to |b|. On the simulated finger
+(172 000 pixels, bounding box 432 x 459) that is 3 preconditioner applications, and FAST
+differs from ``EXACT`` by ~0.07 um RMS (depths spanning 5 mm), far below the error against
+the true surface (~1 um from the true normals with the perspective model, 100-200 um with
+the orthographic one or from Lambertian normals); ``tol`` = 1e-4 takes 5 and differs by
+~0.015 um. Speed and accuracy figures: ``bench/bench_recon_speed.py``. If it has not
+converged after ``min(max_iter, FAST_MAX_ITER)`` preconditioner applications (the comb-like
+masks ``EXACT`` solves directly) it falls back to ``EXACT``. The arrays of the box are kept
+per thread for the next call (fresh memory would cost its page faults every burst).
 
 Each component is given zero mean height (its offset is not observable), so the whole result
 has zero mean inside the mask.
@@ -82,10 +107,12 @@ Metric scale of points comes from the camera intrinsics and the working distance
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from enum import Enum
 from functools import lru_cache
+from typing import NamedTuple
 
-import cv2
 import numpy as np
 import scipy.fft
 import scipy.ndimage
@@ -95,30 +122,29 @@ import scipy.sparse.linalg
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.mask_box import mask_bounding_box
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
-from fingerps_recon.surface.integration_kernel import log_depth_steps
+from fingerps_recon.surface import integration_kernel as kernels
 
 _SMALL_COMPONENT = 2048
 
 #: Default relative residual of the FAST solver.
-FAST_TOL = 1e-4
-#: Iteration limit of the FAST solver before it falls back to the EXACT one.
+FAST_TOL = 3e-3
+#: Iteration (preconditioner application) limit of the FAST solver before it falls back to
+#: the EXACT one.
 FAST_MAX_ITER = 30
 #: Default relative residual of the EXACT solver.
 EXACT_TOL = 1e-6
 
 # Threads for the DCTs of the FAST solver. Two (the machine's cores) gained nothing inside the
 # solver: between DCTs pocketfft's second thread sleeps, and waking it cost about what it
-# saved on a 432 x 480 DCT (~0.8 ms); one thread leaves the other core to the rest of the node.
+# saved (more on a loaded machine); one thread leaves the other core to the rest of the node.
 _FFT_WORKERS = 1
-_CROSS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=np.float32)
-_MINUS_CROSS = -_CROSS
 
 
 class IntegrationMethod(Enum):
     """Solver of the masked Poisson equation (see the module docstring)."""
 
     FAST = "fast"
-    """Bounding-box PCG in float32 with stencil products, to ``FAST_TOL``; the default."""
+    """Bounding-box PCG in float32 from a polynomial start, to ``FAST_TOL``; the default."""
     EXACT = "exact"
     """Per-component PCG in float64 with a sparse matrix to ``EXACT_TOL``, direct fallback."""
 
@@ -149,7 +175,7 @@ def integrate_normals(
         sqrt(1 - min_nz**2) / min_nz (0.1 -> about 84 degrees).
     tol : float, optional
         Relative residual at which the conjugate-gradient iterations stop; default
-        ``FAST_TOL`` (1e-5) or ``EXACT_TOL`` (1e-6) by ``method``.
+        ``FAST_TOL`` (3e-3) or ``EXACT_TOL`` (1e-6) by ``method``.
     max_iter : int
         Conjugate-gradient iteration limit (per connected component for ``EXACT``); a
         problem that has not converged by then is solved by a sparse direct factorisation
@@ -172,17 +198,13 @@ def integrate_normals(
     n, m = _checked(normals, mask, min_nz=min_nz, tol=tol, max_iter=max_iter, method=method)
     if not (np.isfinite(pixel_size_m) and pixel_size_m > 0):
         raise FingerpsReconError(f"pixel_size_m must be a positive number, got {pixel_size_m}")
-    height = np.full(m.shape, np.nan, dtype=np.float32)
     box = mask_bounding_box(m)
     if box is None:
-        return height
-    nb, mb = n[box], m[box]
-    if method is IntegrationMethod.EXACT:
-        du, dv = _slopes(nb, mb, min_nz=float(min_nz))
-    else:
-        du, dv = _slopes_f32(nb, mb, min_nz=float(min_nz))
-    solution = _solve(du, dv, mb, method=method, tol=tol, max_iter=max_iter)
-    height[box] = solution * pixel_size_m
+        return np.full(m.shape, np.nan, dtype=np.float32)
+    height = _output(m.shape, box)
+    _solve(_orthographic_steps(n, box, min_nz=float(min_nz)), m, box, method=method, tol=tol,
+           max_iter=max_iter, out=height, scale=pixel_size_m, offset=0.0, exponential=False,
+           exact_steps=lambda: _slopes(n[box], m[box], min_nz=float(min_nz)))
     return height
 
 
@@ -238,17 +260,26 @@ def integrate_normals_perspective(
         raise FingerpsReconError(
             f"working_distance_m must be a positive number, got {working_distance_m}"
         )
-    depth = np.full(m.shape, np.nan, dtype=np.float32)
     box = mask_bounding_box(m)
     if box is None:
-        return depth
-    du, dv = _log_depth_steps(n, m, k, box, min_nz=float(min_nz))
-    if method is IntegrationMethod.EXACT:
-        du, dv = du.astype(np.float64), dv.astype(np.float64)
-    log_depth = _solve(du, dv, m[box], method=method, tol=tol, max_iter=max_iter)
-    log_depth += np.log(working_distance_m).astype(log_depth.dtype)
-    depth[box] = np.exp(log_depth)
+        return np.full(m.shape, np.nan, dtype=np.float32)
+    steps = _perspective_steps(n, k, box, min_nz=float(min_nz))
+    depth = _output(m.shape, box)
+    _solve(steps, m, box, method=method, tol=tol, max_iter=max_iter, out=depth, scale=1.0,
+           offset=float(np.log(working_distance_m)), exponential=True,
+           exact_steps=lambda: _log_depth_slopes(n, m, k, box, min_nz=float(min_nz)))
     return depth
+
+
+def _output(shape: tuple[int, int], box: tuple[slice, slice]) -> np.ndarray:
+    """(H, W) float32, NaN outside ``box``; the box is left for the solver to write."""
+    out = np.empty(shape, dtype=np.float32)
+    rows, cols = box
+    out[: rows.start] = np.nan
+    out[rows.stop :] = np.nan
+    out[rows, : cols.start] = np.nan
+    out[rows, cols.stop :] = np.nan
+    return out
 
 
 # ----------------------------------------------------------------------------- checks
@@ -264,7 +295,7 @@ def _checked(
     method: IntegrationMethod,
 ) -> tuple[np.ndarray, np.ndarray]:
     n = np.asarray(normals)
-    m = np.asarray(mask)
+    m = np.ascontiguousarray(mask)
     if n.ndim != 3 or n.shape[2] != 3:
         raise FingerpsReconError(f"normals must have shape (H, W, 3), got {n.shape}")
     if m.shape != n.shape[:2]:
@@ -304,47 +335,50 @@ def _slopes(
     return p, -q
 
 
-def _components_f32(
-    normals: np.ndarray, mask: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """nx, ny, nz (float32 planes, not normalised), |n| and the usable pixels.
+class _Steps(NamedTuple):
+    """The arguments from which the FAST kernel computes each pixel's steps (du, dv): D =
+    max(nz - nx x_n + ny y_n, min_nz |n| |r|), du = nx / (fx D),
+    dv = -(ny + skew nx) / (fy D) (:func:`surface.integration_kernel.assemble_rhs`)."""
 
-    Usable: inside the mask, finite and non-zero.
-    """
-    if normals.dtype != np.float32:
-        normals = normals.astype(np.float32)
-    nx, ny, nz = cv2.split(normals)  # contiguous planes
-    norm = nx * nx
-    norm += ny * ny
-    norm += nz * nz
-    np.sqrt(norm, out=norm)
-    with np.errstate(invalid="ignore"):
-        usable = (norm > 0) & (norm < np.inf)  # NaN compares False
-    usable &= mask
-    return nx, ny, nz, norm, usable
+    normals: np.ndarray  # (H, W, 3) float32, C-contiguous
+    x_n: np.ndarray      # (1, w) or (h, w) float32
+    y_n: np.ndarray      # (h,) float32
+    skew: np.float32
+    min_nz: np.float32
+    fx: np.float32
+    fy: np.float32
 
 
-def _slopes_f32(
-    normals: np.ndarray, mask: np.ndarray, *, min_nz: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """As :func:`_slopes` in float32: -nx / max(nz, min_nz |n|) needs no normalisation."""
-    nx, ny, nz, norm, usable = _components_f32(normals, mask)
-    norm *= np.float32(min_nz)
-    np.maximum(nz, norm, out=norm)
-    return _divided(-nx, ny, norm, usable)
+def _perspective_steps(
+    normals: np.ndarray, camera_matrix: np.ndarray, box: tuple[slice, slice], *, min_nz: float
+) -> _Steps:
+    """Steps of log depth per column and per row (module docstring) on ``box``."""
+    fx, s, cx = (float(c) for c in camera_matrix[0])
+    fy, cy = float(camera_matrix[1, 1]), float(camera_matrix[1, 2])
+    rows, cols = box
+    y_n = (np.arange(rows.start, rows.stop) - cy) / fy  # (h,)
+    x_n = ((np.arange(cols.start, cols.stop) - cx) / fx)[None, :]  # (1, w), (h, w) with skew
+    if s != 0.0:
+        x_n = x_n - (s / fx) * y_n[:, None]
+    f32 = np.float32
+    return _Steps(np.ascontiguousarray(normals, dtype=f32), x_n.astype(f32), y_n.astype(f32),
+                  f32(s / fx), f32(min_nz), f32(fx), f32(fy))
 
 
-def _divided(
-    num_u: np.ndarray, num_v: np.ndarray, den: np.ndarray, usable: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """num_u / den and num_v / den where usable, else 0 (float32)."""
-    inv = np.divide(np.float32(1.0), den, out=np.zeros_like(den), where=usable)
-    du = np.multiply(num_u, inv, out=np.zeros_like(inv), where=usable)
-    dv = np.multiply(num_v, inv, out=inv, where=usable)
-    return du, dv
+def _orthographic_steps(normals: np.ndarray, box: tuple[slice, slice], *,
+                        min_nz: float) -> _Steps:
+    """Height steps in pixels per column and per row (module docstring) on ``box``: the
+    perspective formula with x_n = y_n = 0 and fx = fy = -1, du = -nx / max(nz, min_nz |n|),
+    dv = ny / max(nz, min_nz |n|)."""
+    rows, cols = box
+    f32 = np.float32
+    return _Steps(np.ascontiguousarray(normals, dtype=f32),
+                  np.zeros((1, cols.stop - cols.start), dtype=f32),
+                  np.zeros(rows.stop - rows.start, dtype=f32), f32(0.0), f32(min_nz),
+                  f32(-1.0), f32(-1.0))
 
 
-def _log_depth_steps(
+def _log_depth_slopes(
     normals: np.ndarray,
     mask: np.ndarray,
     camera_matrix: np.ndarray,
@@ -352,23 +386,23 @@ def _log_depth_steps(
     *,
     min_nz: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Steps of log depth per column and per row (module docstring), float32, on ``box``
-    of the (H, W, 3) ``normals`` and (H, W) ``mask``: one compiled pass
-    (:func:`surface.integration_kernel.log_depth_steps`)."""
+    """Steps of log depth per column and per row (module docstring), float64, on ``box`` of
+    the (H, W, 3) ``normals`` and (H, W) ``mask``: the EXACT solver's (the FAST one computes
+    them in float32 in its kernel); 0 where a normal is zero or not finite."""
     fx, s, cx = (float(c) for c in camera_matrix[0])
     fy, cy = float(camera_matrix[1, 1]), float(camera_matrix[1, 2])
     rows, cols = box
-    h, w = rows.stop - rows.start, cols.stop - cols.start
-    y_n = (np.arange(rows.start, rows.stop) - cy) / fy  # (h,)
-    x_n = ((np.arange(cols.start, cols.stop) - cx) / fx)[None, :]  # (1, w), (h, w) with skew
-    if s != 0.0:
-        x_n = x_n - (s / fx) * y_n[:, None]
-    du = np.empty((h, w), dtype=np.float32)
-    dv = np.empty((h, w), dtype=np.float32)
-    f32 = np.float32
-    log_depth_steps(np.ascontiguousarray(normals, dtype=f32), np.ascontiguousarray(mask),
-                    rows.start, cols.start, x_n.astype(f32), y_n.astype(f32), f32(s / fx),
-                    f32(min_nz), f32(fx), f32(fy), du, dv)
+    n = normals[box].astype(np.float64)
+    y_n = ((np.arange(rows.start, rows.stop) - cy) / fy)[:, None]
+    x_n = (np.arange(cols.start, cols.stop) - cx) / fx - (s / fx) * y_n
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        norm = np.linalg.norm(n, axis=2)
+        usable = mask[box] & np.isfinite(norm) & (norm > 0)
+        nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+        ray = np.sqrt(x_n * x_n + y_n * y_n + 1.0)
+        den = np.maximum(nz - nx * x_n + ny * y_n, min_nz * ray * norm)
+        du = np.where(usable, nx / (fx * den), 0.0)
+        dv = np.where(usable, -(ny + (s / fx) * nx) / (fy * den), 0.0)
     return du, dv
 
 
@@ -376,201 +410,336 @@ def _log_depth_steps(
 
 
 def _solve(
-    du: np.ndarray,
-    dv: np.ndarray,
+    steps: _Steps,
     mask: np.ndarray,
+    box: tuple[slice, slice],
     *,
     method: IntegrationMethod,
     tol: float | None,
     max_iter: int,
-) -> np.ndarray:
-    """Least-squares integration of the steps over ``mask``; (h, w), NaN outside.
+    out: np.ndarray,
+    scale: float,
+    offset: float,
+    exponential: bool,
+    exact_steps: Callable[[], tuple[np.ndarray, np.ndarray]],
+) -> None:
+    """Least-squares integration of the steps over the mask; writes ``out[box]``.
 
-    float32 from ``FAST``, float64 from ``EXACT`` (or the fallback to it).
+    ``steps``: how the FAST solver computes the steps of the box ``box`` of ``mask``
+    (H, W) bool, C-contiguous; ``exact_steps()``: the same steps as two (h, w) float64
+    arrays for ``EXACT`` (to which ``FAST`` hands over if it does not converge). ``out``
+    (H, W) float32: on the box, ``scale * solution + offset`` on the mask (the solution with
+    zero mean per 4-connected component) and NaN elsewhere, or with ``exponential``
+    exp(scale * solution + offset); outside the box left as it is.
     """
-    solution = None
-    if method is IntegrationMethod.FAST:
-        solution = _solve_fast(
-            du,
-            dv,
-            mask,
-            tol=FAST_TOL if tol is None else tol,
-            max_iter=min(max_iter, FAST_MAX_ITER),
-        )
-    if solution is None:  # EXACT, or FAST did not converge
-        values = _solve_exact(
-            du.astype(np.float64, copy=False),
-            dv.astype(np.float64, copy=False),
-            mask,
-            tol=EXACT_TOL if tol is None else tol,
-            max_iter=max_iter,
-        )
-        solution = np.full(mask.shape, np.nan)
-        solution[mask] = values
-    if not np.all(np.isfinite(solution[mask])):
-        raise FingerpsReconError(
-            "normal integration produced non-finite values; check that the normals inside "
-            "the mask are finite"
-        )
-    return solution
+    if method is IntegrationMethod.FAST and _solve_fast(
+        steps, mask, box, tol=FAST_TOL if tol is None else tol,
+        max_iter=min(max_iter, FAST_MAX_ITER), out=out, scale=scale, offset=offset,
+        exponential=exponential,
+    ):
+        return
+    inside = mask[box]
+    du, dv = exact_steps()
+    values = _solve_exact(du, dv, inside, tol=EXACT_TOL if tol is None else tol,
+                          max_iter=max_iter)
+    if not np.all(np.isfinite(values)):
+        raise FingerpsReconError(_NON_FINITE)
+    view = out[box]
+    view[...] = np.nan
+    view[inside] = scale * values + offset
+    if exponential:
+        np.exp(view, out=view)
+
+
+_NON_FINITE = ("normal integration produced non-finite values; check that the normals "
+               "inside the mask are finite")
 
 
 def _solve_fast(
-    du: np.ndarray, dv: np.ndarray, mask: np.ndarray, *, tol: float, max_iter: int
-) -> np.ndarray | None:
-    """Masked Poisson solve on the mask's bounding box (module docstring, ``FAST``).
+    steps: _Steps,
+    mask: np.ndarray,
+    box: tuple[slice, slice],
+    *,
+    tol: float,
+    max_iter: int,
+    out: np.ndarray,
+    scale: float,
+    offset: float,
+    exponential: bool,
+) -> bool:
+    """The ``FAST`` solver (module docstring): writes ``out[box]`` as :func:`_solve` does and
+    returns True, or returns False (``out`` untouched) if the relative residual is still
+    above ``tol`` after ``max_iter`` preconditioner applications."""
+    rows, cols = box
+    r0, c0 = rows.start, cols.start
+    h, w = rows.stop - r0, cols.stop - c0
+    shape = (h, scipy.fft.next_fast_len(w, real=True))  # DCT along rows only
+    inside = mask.view(np.uint8)
+    poly = _poly_tables(h, w)
+    ws = _workspace(h, w, shape)
+    buf = ws.buf  # b, then each preconditioner application's input and output
+    n_runs, b_norm2 = kernels.assemble_rhs(
+        steps.normals, inside, r0, c0, h, w, steps.x_n, steps.y_n, steps.skew, steps.min_nz,
+        steps.fx, steps.fy, poly.row_powers, buf, ws.col_moments, ws.run_start, ws.run_stop,
+        ws.row_first)
+    run_start, run_stop = ws.run_start[:n_runs], ws.run_stop[:n_runs]
+    labels = np.empty(n_runs, dtype=np.int32)
+    gram = np.empty((_A.size, _A.size))
+    mask_moments = np.empty((_POLY_DEGREE + 1, _POLY_DEGREE + 1))
+    n_comp, n_out = kernels.run_topology(
+        run_start, run_stop, ws.row_first, shape[1], poly.pair_prefix, poly.power_prefix,
+        poly.row_powers, poly.row_steps, _A, _B, labels, ws.outline_rows, ws.outline_cols,
+        gram, mask_moments, ws.segments[0], ws.segments[1])
+    outline_rows, outline_cols = ws.outline_rows[:n_out], ws.outline_cols[:n_out]
 
-    Parameters
-    ----------
-    du, dv : (h, w) float32
-        Steps per column and per row, zero outside ``mask``.
-    mask : (h, w) bool
+    # The start: the best polynomial of degree <= _POLY_DEGREE in the A-norm, q0 = V c,
+    # from V^T A V c = V^T b (V^T b: the moments of b).
+    gram_inverse = _inverse(gram)
+    moments = np.empty(_A.size)
+    kernels.column_moments(ws.col_moments, poly.col_powers, _A, _B, moments)
+    coef = gram_inverse @ moments
+    r_norm2 = kernels.subtract_poly_laplacian(buf, inside, r0, c0, h, w, _coef_table(coef),
+                                              poly.row_powers, poly.col_powers[1])
 
-    Returns
-    -------
-    solution : (h, w) float32 or None
-        Zero mean per 4-connected component of the mask, NaN outside; None if the relative
-        residual is still above ``tol`` after ``max_iter`` iterations.
-    """
-    h, w = mask.shape
-    shape = (
-        scipy.fft.next_fast_len(h, real=True),
-        scipy.fft.next_fast_len(w, real=True),
-    )
-    inside = np.zeros(shape, dtype=np.float32)
-    inside[:h, :w] = mask
-    labels, n_comp = _labels(mask)
-    # The mean steps are a plane, which every edge equation satisfies exactly: integrate
-    # only the rest, whose smaller values at the mask's outline the Frankot–Chellappa start
-    # (zero steps outside the mask) matches better; a tilted plane needs no iteration at all.
-    n_pix = np.count_nonzero(mask)
-    mean_du = np.float32(du.sum(dtype=np.float64) / n_pix)
-    mean_dv = np.float32(dv.sum(dtype=np.float64) / n_pix)
-
-    # b = D^T g over the edges with both ends inside, g = mean of the two pixels' steps less
-    # the plane's (du, dv are zero outside the mask, so g is only used on such edges).
-    b = np.zeros(shape, dtype=np.float32)
-    g = du[:, :-1] + du[:, 1:]
-    g *= np.float32(0.5)
-    g -= mean_du
-    g *= inside[:h, : w - 1]
-    g *= inside[:h, 1:w]
-    b[:h, 1:w] += g
-    b[:h, : w - 1] -= g
-    g = dv[:-1] + dv[1:]
-    g *= np.float32(0.5)
-    g -= mean_dv
-    g *= inside[: h - 1, :w]
-    g *= inside[1:h, :w]
-    b[1:h, :w] += g
-    b[: h - 1, :w] -= g
-    # Each component's sum of b is zero in exact arithmetic; remove the round-off.
-    _subtract_component_means(b[:h, :w], mask, labels, n_comp)
-
-    x = _pcg_box(b, inside, tol=tol, max_iter=max_iter)
-    if x is None:
-        return None
-    solution = x[:h, :w]
-    solution += mean_du * np.arange(w, dtype=np.float32)
-    solution += mean_dv * np.arange(h, dtype=np.float32)[:, None]
-    _subtract_component_means(solution, mask, labels, n_comp)
-    solution[~mask] = np.nan
-    return solution
-
-
-def _pcg_box(
-    b: np.ndarray, inside: np.ndarray, *, tol: float, max_iter: int
-) -> np.ndarray | None:
-    """Solve A x = b for the masked graph Laplacian A of ``inside`` on its whole box.
-
-    Conjugate gradients preconditioned by the box's Neumann Laplacian (DCT-II), all float32,
-    A applied as a 4-neighbour stencil. ``b`` and the result are zero outside the mask.
-    Returns None if the relative residual is above ``tol`` after ``max_iter`` iterations.
-    """
-    shape = b.shape
-    x = np.zeros(shape, dtype=np.float32)
-    b_norm2 = float(np.vdot(b, b))
-    if b_norm2 == 0.0:
-        return x
-    degree = cv2.filter2D(inside, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
-    degree *= inside
-
-    def laplacian(v: np.ndarray) -> np.ndarray:
-        # degree * v - (sum of the inside neighbours), v zero outside: three passes
-        av = cv2.filter2D(v, -1, _MINUS_CROSS, borderType=cv2.BORDER_CONSTANT)
-        av *= inside
-        cv2.accumulateProduct(degree, v, av)
-        return av
-
-    inv_ev = _inverse_eigenvalues(shape)
-
-    def precondition(res: np.ndarray) -> np.ndarray:
-        spec = scipy.fft.dctn(res, type=2, norm="ortho", workers=_FFT_WORKERS)
-        spec *= inv_ev
-        z = scipy.fft.idctn(spec, type=2, norm="ortho", workers=_FFT_WORKERS, overwrite_x=True)
-        z *= inside
-        return z
-
-    # From x = 0 the first step is Frankot–Chellappa on the box (zero steps outside).
+    # Conjugate gradients from x = 0 on A x = b - A q0 (module docstring); after the first
+    # step (alpha = 1) the residual lives on the outline pixels alone.
     limit = tol * tol * b_norm2
-    r = b
-    z = precondition(r)
-    d = z
-    rz = float(np.vdot(r, z))
-    for _ in range(max_iter):
-        ad = laplacian(d)
-        alpha = rz / float(np.vdot(d, ad))
-        x = cv2.scaleAdd(d, alpha, x)  # x + alpha d, one pass
-        r = cv2.scaleAdd(ad, -alpha, r)
-        if float(np.vdot(r, r)) <= limit:
-            return x
-        z = precondition(r)
-        rz_new = float(np.vdot(r, z))
-        d = cv2.scaleAdd(d, rz_new / rz, z)
-        rz = rz_new
-    return None
+    converged = r_norm2 <= limit
+    residual = buf[outline_rows, outline_cols]
+    product = np.empty(n_out, dtype=np.float32)
+    x, d = ws.x, ws.d
+    alpha = np.float32(0.0)
+    rz = rz_old = 0.0
+    x_sum = 0.0  # the sum of x + alpha d over the mask (for the mean of one component)
+    applied = 0  # preconditioner applications, one a step
+    cosines = _cosines(shape[1])
+    pivots = _column_pivots(shape)
+    while not converged and applied < max_iter:
+        _precondition(buf, pivots, transformed=applied > 0)
+        if applied > 0:
+            rz = kernels.outline_dot(buf, outline_rows, outline_cols, n_out, residual)
+        # the second step restarts (beta = 0): the first one's length was not rz / d_ad
+        beta = np.float32(rz / rz_old if applied > 1 and rz_old > 0.0 else 0.0)
+        d_sum = kernels.take_direction(buf, inside, r0, c0, x, d, alpha, beta, applied)
+        d_ad = kernels.outline_laplacian(d, inside, r0, c0, outline_rows, outline_cols,
+                                         n_out, product)
+        if applied > 0 and not d_ad > 0.0:  # no descent left: cannot reach tol
+            break
+        alpha = np.float32(rz / d_ad if applied > 0 else 1.0)
+        x_sum += float(alpha) * d_sum
+        r_norm2 = kernels.outline_update(residual, product, alpha, n_out)
+        rz_old = rz
+        applied += 1
+        converged = r_norm2 <= limit
+        if not converged and applied < max_iter:  # the next step's input, transformed
+            kernels.outline_spectrum(residual, buf, outline_rows, outline_cols, n_out,
+                                     cosines)
+    if not converged:
+        return False
+    if applied:  # the best polynomial correction of the remaining error: V^T A V c = V^T r
+        kernels.outline_moments(residual, outline_rows, outline_cols, n_out, poly.row_powers,
+                                poly.col_powers, _A, _B, moments)
+        coef += gram_inverse @ moments
+    table = _coef_table(coef)
+    counts = np.bincount(labels, weights=run_stop - run_start, minlength=n_comp)
+    final = n_comp == 1  # the mean is known: x's sum and q's from the mask's moments
+    center = np.array([(x_sum + float(np.sum(table * mask_moments))) / counts[0]])
+    sums = np.zeros(n_comp)
+    kernels.write_solution(x, d, alpha, applied, run_start, run_stop, ws.row_first, labels,
+                           table, poly.row_powers, poly.col_powers[1], out, r0, c0, sums,
+                           center, float(scale), float(offset), exponential, final)
+    if not final:
+        center = sums / counts
+        kernels.finish_runs(out, r0, c0, h, w, run_start, run_stop, ws.row_first, labels,
+                            center, float(scale), float(offset), exponential)
+    if not np.all(np.isfinite(center)):
+        raise FingerpsReconError(_NON_FINITE)
+    return True
+
+
+class _Workspace:
+    """The FAST solver's arrays for boxes up to a size, kept between calls on one thread
+    (fresh memory costs its page faults on every call; the box changes little between
+    bursts). Arrays of a call are C-contiguous views of the first elements."""
+
+    def __init__(self) -> None:
+        self.capacity = (0, 0, 0)  # h2 * w2, h * w, h
+
+    def fit(self, h: int, w: int, shape: tuple[int, int]) -> None:
+        need = (shape[0] * shape[1], h * w, h)
+        if any(n > c for n, c in zip(need, self.capacity, strict=True)):
+            dct, pixels, rows = (max(n, c) for n, c in zip(need, self.capacity, strict=True))
+            self.capacity = (dct, pixels, rows)
+            self._buf = np.empty(dct, dtype=np.float32)
+            self._x = np.empty(pixels, dtype=np.float32)
+            self._d = np.empty(pixels, dtype=np.float32)
+            # at most w // 2 + 1 runs a row: h (w // 2 + 1) <= h w / 2 + h
+            self._runs = np.empty((2, pixels // 2 + rows + 1), dtype=np.int32)
+            self._outline = np.empty((2, pixels), dtype=np.int32)
+        deg = _POLY_DEGREE
+        self.buf = self._buf[: need[0]].reshape(shape)
+        self.x = self._x[: need[1]].reshape(h, w)
+        self.d = self._d[: need[1]].reshape(h, w)
+        self.run_start, self.run_stop = self._runs
+        self.outline_rows, self.outline_cols = self._outline
+        self.row_first = np.empty(h + 1, dtype=np.int32)
+        self.col_moments = np.empty((deg + 1, w))
+        self.segments = np.empty((2, 2, w + 1), dtype=np.int32)
+
+
+_THREAD = threading.local()
+
+
+def _workspace(h: int, w: int, shape: tuple[int, int]) -> _Workspace:
+    """This thread's :class:`_Workspace`, fitted to an h x w box in a DCT box of ``shape``."""
+    ws = getattr(_THREAD, "workspace", None)
+    if ws is None:
+        ws = _THREAD.workspace = _Workspace()
+    ws.fit(h, w, shape)
+    return ws
+
+
+def _inverse(gram: np.ndarray) -> np.ndarray:
+    """Inverse of the symmetric positive semi-definite ``gram``, or its pseudo-inverse
+    (eigenvalues below 1e-12 of the largest count as zero) when it is singular: a mask too
+    small or thin for some monomials."""
+    inverse = np.empty_like(gram)
+    if kernels.spd_inverse(gram, inverse):
+        return inverse
+    values, vectors = np.linalg.eigh(gram)
+    keep = values > 1e-12 * max(values[-1], 0.0)
+    return (vectors[:, keep] / values[keep]) @ vectors[:, keep].T
+
+
+def _precondition(buf: np.ndarray, pivots: tuple[np.ndarray, np.ndarray], *,
+                 transformed: bool = False) -> None:
+    """buf = L^+ buf in place, L the Neumann Laplacian of the box (buf's shape): a DCT-II
+    along the rows (unless ``transformed``: buf holds it already), a tridiagonal solve down
+    each column (``pivots``: :func:`_column_pivots` of the shape), the inverse DCT."""
+    if not transformed:
+        spec = scipy.fft.dct(buf, type=2, axis=1, norm="ortho", workers=_FFT_WORKERS,
+                             overwrite_x=True)
+        if spec.ctypes.data != buf.ctypes.data:  # pocketfft works in place; if it ever
+            buf[...] = spec                      # does not
+    kernels.neumann_columns(buf, *pivots)
+    z = scipy.fft.idct(buf, type=2, axis=1, norm="ortho", workers=_FFT_WORKERS,
+                       overwrite_x=True)
+    if z.ctypes.data != buf.ctypes.data:
+        buf[...] = z
 
 
 @lru_cache(maxsize=4)
-def _inverse_eigenvalues(shape: tuple[int, int]) -> np.ndarray:
-    """(h, w) float32 inverse eigenvalues of the h x w rectangle's 4-neighbour Neumann
-    Laplacian in the DCT-II basis, 0 for the constant mode (free); read-only, kept for the
-    next burst of the same box size."""
-    ev = (2.0 - 2.0 * np.cos(np.pi * np.arange(shape[0]) / shape[0]))[:, None] + (
-        2.0 - 2.0 * np.cos(np.pi * np.arange(shape[1]) / shape[1])
-    )[None, :]
-    ev[0, 0] = 1.0
-    inv_ev = (1.0 / ev).astype(np.float32)
-    inv_ev[0, 0] = 0.0  # the constant mode is free
-    inv_ev.setflags(write=False)
-    return inv_ev
+def _cosines(w2: int) -> np.ndarray:
+    """(w2, w2) float32 [c, j]: the orthonormal DCT-II of a row of w2 pixels is
+    sum over c of row[c] cosines[c, j] (scipy.fft.dct(norm="ortho")); read-only."""
+    c = np.arange(w2)[:, None]
+    j = np.arange(w2)[None, :]
+    table = np.cos(np.pi * j * (2 * c + 1) / (2 * w2)) * np.sqrt(2.0 / w2)
+    table[:, 0] = np.sqrt(1.0 / w2)
+    table = table.astype(np.float32)
+    table.setflags(write=False)
+    return table
 
 
-def _labels(mask: np.ndarray) -> tuple[np.ndarray | None, int]:
-    """4-connected component labels 0..n-1 of the mask pixels (None if there is one)."""
-    n_labels, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=4)
-    if n_labels <= 2:
-        return None, 1
-    return labels[mask] - 1, n_labels - 1
+def _column_shifts(w2: int) -> np.ndarray:
+    """mu_k = 2 - 2 cos(pi k / w2): the eigenvalues of the Neumann second difference along
+    a row of w2 pixels in the DCT-II basis."""
+    return 2.0 - 2.0 * np.cos(np.pi * np.arange(w2) / w2)
 
 
-def _subtract_component_means(
-    values: np.ndarray, mask: np.ndarray, labels: np.ndarray | None, n_comp: int
-) -> None:
-    """Give ``values`` (in place) zero mean over the mask pixels of each component.
+_PIVOTS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+_PIVOTS_LOCK = threading.Lock()
 
-    Values outside the mask are left as they are.
-    """
-    if labels is None:  # one pass for the mean, one for the subtraction (OpenCV, masked)
-        inside = mask.view(np.uint8)
-        mean = cv2.mean(values, mask=inside)[0]
-        cv2.subtract(values, mean, dst=values, mask=inside)
-        return
-    inner = values[mask]
-    sums = np.bincount(labels, weights=inner, minlength=n_comp)
-    counts = np.bincount(labels, minlength=n_comp)
-    inner -= (sums / counts).astype(np.float32)[labels]
-    values[mask] = inner
+
+def _pivots(w2: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pivots p_i (float64) and 1 / p_i (float32, column 0 zero) of Thomas' algorithm for
+    T + mu_k I, rows 0..rows - 1 of a T taller than the box (row 0's diagonal 1 + mu, the
+    next ones' 2 + mu: the last row of a box differs, :func:`_last_pivots`). Kept per w2 and
+    grown when a taller box comes (the recurrence runs down the rows)."""
+    with _PIVOTS_LOCK:
+        pivots, inverse = _PIVOTS.get(w2, (np.empty((0, w2)), np.empty((0, w2), np.float32)))
+        if pivots.shape[0] < rows:
+            mu = _column_shifts(w2)
+            grown = np.empty((rows + 64, w2))  # room for a few more rows
+            grown[: pivots.shape[0]] = pivots
+            start = pivots.shape[0]
+            if start == 0:
+                grown[0] = 1.0 + mu
+                start = 1
+            for i in range(start, grown.shape[0]):
+                grown[i] = 2.0 + mu - 1.0 / grown[i - 1]
+            inverse = (1.0 / grown).astype(np.float32)
+            inverse[:, 0] = 0.0
+            pivots = grown
+            for table in (pivots, inverse):
+                table.setflags(write=False)
+            _PIVOTS[w2] = (pivots, inverse)
+        return pivots, inverse
+
+
+@lru_cache(maxsize=8)
+def _column_pivots(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """For a box of ``shape`` (h, w2): (>= h - 1, w2) float32 1 / p_i of rows 0..h - 2
+    (:func:`_pivots`) and (w2,) float32 1 / p of the last row (its diagonal 1 + mu, or mu
+    alone for one row); column 0 zero (solved apart). Read-only, kept for the next bursts
+    of the same box size."""
+    h, w2 = shape
+    inverse = _pivots(w2, max(h - 1, 1))[1]
+    mu = _column_shifts(w2)
+    mu[0] = 1.0  # column 0 is solved apart; keep its division finite
+    if h == 1:
+        last = mu
+    else:
+        last = 1.0 + mu - 1.0 / _pivots(w2, h - 1)[0][h - 2]
+    last_inverse = (1.0 / last).astype(np.float32)
+    last_inverse[0] = 0.0
+    last_inverse.setflags(write=False)
+    return inverse, last_inverse
+
+
+# ----------------------------------------------------------------------------- polynomials
+
+#: Degree of the polynomial space of the FAST solver's start and last correction.
+_POLY_DEGREE = kernels.POLY_DEGREE
+# Its basis: monomials s^a t^b, 1 <= a + b <= _POLY_DEGREE (the constant is free), as the
+# pairs (_A[i], _B[i]).
+_BASIS = [(a, t - a) for t in range(1, _POLY_DEGREE + 1) for a in range(t + 1)]
+_A = np.array([a for a, _ in _BASIS])
+_B = np.array([b for _, b in _BASIS])
+
+
+class _PolyTables(NamedTuple):
+    """Tables of the polynomial space on an h x w box (:func:`_poly_tables`)."""
+
+    col_powers: np.ndarray    # (D + 1, w) s(c)^a
+    row_powers: np.ndarray    # (h, 2 D + 1) t(r)^k
+    pair_prefix: np.ndarray   # (w, D * D) prefix sums over c of Dh_a(c) Dh_a'(c)
+    power_prefix: np.ndarray  # (w + 1, 2 D + 1) prefix sums over c of s(c)^k
+    row_steps: np.ndarray     # (h - 1, D * D) Dv_b(r) Dv_b'(r)
+
+
+@lru_cache(maxsize=8)
+def _poly_tables(h: int, w: int) -> _PolyTables:
+    """Coordinates s = (c - (w - 1) / 2) / ((w - 1) / 2), t likewise for rows (in [-1, 1]),
+    their powers, and the steps of the monomials along an edge: Dh_a(c) = s(c + 1)^a -
+    s(c)^a (a = 1..D) between columns c and c + 1, Dv_b(r) likewise between rows
+    (:func:`surface.integration_kernel.poly_tables`); read-only, kept for the next bursts
+    of the same box size."""
+    deg = _POLY_DEGREE
+    tables = _PolyTables(np.empty((deg + 1, w)), np.empty((h, 2 * deg + 1)),
+                         np.empty((w, deg * deg)), np.empty((w + 1, 2 * deg + 1)),
+                         np.empty((max(h - 1, 0), deg * deg)))
+    kernels.poly_tables(*tables)
+    for table in tables:
+        table.setflags(write=False)
+    return tables
+
+
+def _coef_table(coef: np.ndarray) -> np.ndarray:
+    """(D + 1, D + 1) float64 table[a, b] of the polynomial sum_i coef[i] s^_A[i] t^_B[i]."""
+    table = np.zeros((_POLY_DEGREE + 1, _POLY_DEGREE + 1))
+    table[_A, _B] = coef
+    return table
 
 
 def _solve_exact(
@@ -731,6 +900,21 @@ def _solve_small(
     values = np.zeros(lap.shape[0])
     values[free] = scipy.sparse.linalg.spsolve(sub, rhs[free])
     return [(idx, values[idx]) for idx in components]
+
+
+def warm_up() -> None:
+    """Compile (or load) every kernel of the ``FAST`` solver (:mod:`surface.integration_kernel`):
+    a small mask of two components (only then does :func:`finish_runs` run) integrated to a
+    tight tolerance (several steps), with the dtypes a reconstruction gives."""
+    v, u = np.mgrid[0:24, 0:30]
+    mask = (np.hypot(u - 8, v - 12) < 6) | (np.hypot(u - 22, v - 12) < 5)
+    normals = np.zeros((24, 30, 3), dtype=np.float32)
+    normals[..., 0] = np.where(mask, (u - 15) / 40.0, 0.0)
+    normals[..., 1] = np.where(mask, (v - 12) / 50.0, 0.0)
+    normals[..., 2] = 1.0
+    k = np.array([[3000.0, 0.0, 15.0], [0.0, 3000.0, 12.0], [0.0, 0.0, 1.0]])
+    integrate_normals_perspective(normals, mask=mask, camera_matrix=k, working_distance_m=0.09,
+                                  tol=1e-6)
 
 
 def height_to_distance(height_m: np.ndarray, *, working_distance_m: float) -> np.ndarray:
