@@ -404,9 +404,7 @@ def _solve(
     _check_flags(kernel, flags)
     passes = _Passes(kernel, (meas, v_dirs), tau=float(lighting.params.optical_depth), n=n0,
                      rho=rho0)
-    a_scale, history, done = _minimise(
-        passes, scale=start, fit=fit, iterations=iterations, tol=tol,
-    )
+    a_scale, history, done = _minimise(passes, scale=start, iterations=iterations, tol=tol)
     normals = np.zeros((hw, 3), np.float32)
     albedo = np.zeros(hw, np.float32)
     rms = np.zeros(hw, np.float32)
@@ -494,15 +492,15 @@ def _float_array(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _minimise(
-    passes: _Passes, *, scale: float | None, iterations: int, tol: float, fit: bool = True,
+    passes: _Passes, *, scale: float | None, iterations: int, tol: float,
 ) -> tuple[float, list[float], int]:
     """Initialisation and the Levenberg–Marquardt loop (module docstring), in place on the
     state of ``passes``.
 
     Each iteration is two passes over the pixels: the candidates, their sums and the choice
     at the trial A; then, once the new A is known, the commit fused with the next step.
-    ``scale``: A's initial value (None: the global linear fit); ``fit``: whether A is
-    fitted or kept. Returns (A, cost history, iterations done).
+    ``scale``: A's initial value (None: the global linear fit); A is fitted (a held A is
+    solved by :func:`_solve_held`). Returns (A, cost history, iterations done).
     """
     # A and every rho jointly by linear least squares, normals fixed: with the per-pixel
     # sums PP, PC, CC, PI, CI, rho_j(A) = (CI - A PC) / CC and
@@ -513,7 +511,7 @@ def _minimise(
         a_scale = max(num / den, 0.0) if den > 0 else 0.0
     else:
         a_scale = float(scale)
-    total, *schur = passes.start(a_scale, fit=fit, rows_given=scale is None)
+    total, *schur = passes.start(a_scale, rows_given=scale is None)
     lam_scale = _LAMBDA_START
     history = [total]
     done = 0
@@ -522,31 +520,27 @@ def _minimise(
         # Joint step: A's part from the Schur complement (hk_kernel._steps), then the
         # pixels'.
         trial = a_scale
-        if fit:
-            g_a, c_delta, d_sum, c_w = schur
-            den = d_sum * (1.0 + lam_scale) - c_w
-            if den > 1e-12 * d_sum:
-                trial = max(a_scale + (g_a - c_delta) / den, 0.0)
+        g_a, c_delta, d_sum, c_w = schur
+        den = d_sum * (1.0 + lam_scale) - c_w
+        if den > 1e-12 * d_sum:
+            trial = max(a_scale + (g_a - c_delta) / den, 0.0)
         scales = (a_scale, trial)
-        parts = passes.candidate(scales, fit=fit)
-        new_scale, fell_back = trial, False
-        if fit:
-            # A in closed form for the states chosen at the trial A (the model is linear in
-            # A; their cost at A is a known quadratic). The commit re-chooses at that A,
-            # which can only lower the cost further. If even so the total would not drop,
-            # keep the old A (each pixel then takes the better of its two states there).
-            cost, g_sum, d_sum = parts
-            delta = g_sum / d_sum if d_sum > 0 else 0.0
-            best = max(trial + delta, 0.0)
-            delta = best - trial
-            new_scale = best
-            if cost - delta * (2.0 * g_sum - delta * d_sum) > total:
-                new_scale, fell_back = a_scale, True
-            lam_scale = (
-                min(lam_scale * _LAMBDA_UP, _LAMBDA_MAX) if fell_back
-                else max(lam_scale * _LAMBDA_DOWN, _LAMBDA_MIN)
-            )
-        new_total, *schur = passes.commit(scales, at=new_scale, fit=fit)
+        # A in closed form for the states chosen at the trial A (the model is linear in
+        # A; their cost at A is a known quadratic). The commit re-chooses at that A,
+        # which can only lower the cost further. If even so the total would not drop,
+        # keep the old A (each pixel then takes the better of its two states there).
+        cost, g_sum, d_sum = passes.candidate(scales)
+        delta = g_sum / d_sum if d_sum > 0 else 0.0
+        best = max(trial + delta, 0.0)
+        delta = best - trial
+        new_scale, fell_back = best, False
+        if cost - delta * (2.0 * g_sum - delta * d_sum) > total:
+            new_scale, fell_back = a_scale, True
+        lam_scale = (
+            min(lam_scale * _LAMBDA_UP, _LAMBDA_MAX) if fell_back
+            else max(lam_scale * _LAMBDA_DOWN, _LAMBDA_MIN)
+        )
+        new_total, *schur = passes.commit(scales, at=new_scale)
         a_scale = new_scale
         decrease = total - new_total
         total = new_total
@@ -563,7 +557,7 @@ class _Passes:
     fixed order. Each pass returns its global sums: ``linear`` the numerator and
     denominator of A's linear fit; ``start`` and ``commit`` the total cost and the Schur
     parts (P.r, (J^T P).delta0, P.P, (J^T P).w); ``candidate`` the parts of the choice at
-    the trial A (chosen cost, P.r, P.P), or nothing if A is fixed (``start`` forms the
+    the trial A (chosen cost, P.r, P.P) (``start`` forms the
     linear fit's per-pixel sums itself unless ``linear`` did). ``data``: (meas, views)
     (:func:`_solve`); ``n`` (3, Np) and ``rho`` (Np,) float32 the initial
     state."""
@@ -599,29 +593,29 @@ class _Passes:
         self.kernel.linear_sums(self.n, *self.data, self.neg_tau, self.consts, self.rows, parts)
         return [float(v) for v in parts.sum(axis=0)]
 
-    def start(self, scale: float, *, fit: bool, rows_given: bool) -> list[float]:
+    def start(self, scale: float, *, rows_given: bool) -> list[float]:
         parts = self._parts(5)
         self.kernel.start(self.n, self.rho, self.lam, self.rows, float(scale),
                           self._a_tau(scale), self.neg_tau, *self.data, self.consts,
                           self.sums, self.delta0, self.w, parts, rows_given)
         total = [float(v) for v in parts.sum(axis=0)]
-        return total if fit else total[:1]
+        return total
 
-    def candidate(self, scales: tuple[float, float], *, fit: bool) -> list[float]:
+    def candidate(self, scales: tuple[float, float]) -> list[float]:
         parts = self._parts(3)
         self.kernel.candidate(self.n, self.rho, self.delta0, self.w, float(scales[0]),
                               float(scales[1]), self._a_tau(scales[1]), self.neg_tau,
                               *self.data, self.consts, self.sums, self.n_new, self.rho_new,
                               self.sums_new, parts)
-        return [float(v) for v in parts.sum(axis=0)] if fit else []
+        return [float(v) for v in parts.sum(axis=0)]
 
-    def commit(self, scales: tuple[float, float], *, at: float, fit: bool) -> list[float]:
+    def commit(self, scales: tuple[float, float], *, at: float) -> list[float]:
         parts = self._parts(5)
         self.kernel.commit(self.n, self.rho, self.lam, float(scales[0]), float(scales[1]),
                            float(at), self.consts, self.sums, self.n_new, self.rho_new,
                            self.sums_new, self.delta0, self.w, parts)
         total = [float(v) for v in parts.sum(axis=0)]
-        return total if fit else total[:1]
+        return total
 
 
 def _check_options(scale: float | None, iterations: int, tol: float) -> None:
