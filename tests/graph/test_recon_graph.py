@@ -38,6 +38,8 @@ from fingerps_driver.simulation import FingerTruth, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration, TaggedFrame
 from fingerps_recon.photometric.angular_error import angular_error_deg
 from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
+from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.photometric.normal_transform import enhance_ridges
 from fingerps_ros import qos, topics
 from fingerps_ros.image_conversion import array_to_image, image_to_array
 from fingerps_ros.point_cloud_conversion import cloud_to_points
@@ -129,6 +131,14 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
     assert normal_map.encoding == "rgb8"
     rgb = image_to_array(normal_map)
     assert rgb.shape == (height, width, 3) and np.all(rgb[~mask] == 0) and rgb[mask].any()
+    # Watched, the normal map shows the ridge-enhanced normals (Eq. 12; recon_node skips the
+    # enhancement only while nobody subscribes to it), not the plain ones.
+    normals_ps = optical_to_ps(normals_optical)
+    enhanced_rgb = normal_map_rgb(enhance_ridges(normals_ps, mask=mask), mask=mask)
+    plain_rgb = normal_map_rgb(normals_ps, mask=mask)
+    off_enhanced = np.abs(rgb.astype(int) - enhanced_rgb)[mask].max()
+    off_plain = np.abs(rgb.astype(int) - plain_rgb)[mask].mean()
+    assert off_enhanced <= 1 and off_plain > 1.0, (off_enhanced, off_plain)
 
     depth_msg = received[topics.DEPTH][stamp_key(good.header)]
     assert depth_msg.encoding == "32FC1" and depth_msg.header.frame_id == FRAME_ID

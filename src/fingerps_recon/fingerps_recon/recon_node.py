@@ -25,6 +25,7 @@ their QoS, the outputs' messages (``reconstruction.outputs``) and ``/diagnostics
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -41,7 +42,7 @@ from fingerps_recon.reconstruction.outputs import (
     output_messages,
 )
 from fingerps_recon.reconstruction.parameters import PARAMETERS, follow_threads, read_settings
-from fingerps_recon.reconstruction.worker import ReconstructionWorker
+from fingerps_recon.reconstruction.worker import ReconSettings, ReconstructionWorker
 from fingerps_ros import qos, topics
 from fingerps_ros.compressed_topics import CompressedTopics
 from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher
@@ -67,7 +68,7 @@ class ReconNode(Node):
 
         g = self.get_parameter
         self._recon = ReconstructionWorker(
-            lambda: read_settings(self), self._publish, self.get_logger(),
+            self._settings, self._publish, self.get_logger(),
             queue_depth=int(g("queue_depth").value), health_window=int(g("health_window").value))
         recon, guarded = self._recon, self._recon.guarded
         self.create_subscription(Burst, topics.BURST, guarded("burst", recon.on_burst),
@@ -89,16 +90,28 @@ class ReconNode(Node):
         self._worker.start()
         self.get_logger().info("recon ready: waiting for a light calibration and bursts")
 
+    def _wanted(self) -> list[str]:
+        """The outputs someone subscribes to now, raw or compressed."""
+        publishers = self._publishers_by_topic
+        return [topic for topic in OUTPUT_TOPICS
+                if publishers[topic].get_subscription_count() > 0
+                or (topic in self._compressed and self._compressed[topic].watched)]
+
+    def _settings(self) -> ReconSettings:
+        """The parameters as they are now; the ridge enhancement (Eq. 12, for the normal map
+        only) is skipped while nobody subscribes to the normal map."""
+        settings = read_settings(self)
+        if settings.options.enhance and topics.NORMAL_MAP not in self._wanted():
+            settings = replace(settings, options=replace(settings.options, enhance=False))
+        return settings
+
     def _publish(self, made: BurstReconstruction, burst: Burst) -> bool:
         """Publish what a burst made: the outputs someone subscribes to (raw or compressed),
         the print if asked for (False when it could not be made), then the compressed
         companions."""
         header, publishers = burst.header, self._publishers_by_topic
         companions: dict[str, tuple[np.ndarray, str]] = {}
-        wanted = [topic for topic in OUTPUT_TOPICS
-                  if publishers[topic].get_subscription_count() > 0
-                  or (topic in self._compressed and self._compressed[topic].watched)]
-        for output in output_messages(made.result, header, wanted):
+        for output in output_messages(made.result, header, self._wanted()):
             publishers[output.topic].publish(output.message)
             if output.topic in self._compressed:
                 companions[output.topic] = (output.array, output.encoding)
