@@ -43,7 +43,10 @@ windows of ``WINDOW_S`` = 60 s, each with the same five figures under its prefix
   arrived (recon's queue dropped them, or they failed), counted after a grace period that
   ends when every one has its cloud or no cloud of the window arrived for a while;
 - ``<prefix>.latency_ms_median``, ``<prefix>.latency_ms_p95``: received (``time.time_ns`` in
-  the subscriber's callback) - ``header.stamp``, over the clouds of the window's bursts.
+  the subscriber's callback) - ``header.stamp``, over the clouds of the window's bursts;
+- ``<prefix>.cpu_cores.<node>``: CPU time (user + system, from /proc) each node's processes
+  used in the window / its length, in cores (``bench``: this process, the observer): where
+  the machine's cores go.
 
 The windows, in this order on one graph (after a rate change ``RATE_SETTLE_S`` to settle):
 
@@ -194,6 +197,25 @@ class Graph:
                 [executable(package, name), "--ros-args", *args], stdin=subprocess.DEVNULL,
                 stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
         self.logs[name] = log_path
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU seconds (user + system) each node's processes (its session: the node and
+        anything it started) have used so far, from /proc; this process's as ``bench``
+        (the observer's subscriptions and deserialization)."""
+        tick = os.sysconf("SC_CLK_TCK")
+        groups = {proc.pid: name for name, proc in self.procs.items()}
+        used = dict.fromkeys(groups.values(), 0.0)
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue  # gone meanwhile
+            name = groups.get(int(fields[3]))  # the session id (field 6 of stat)
+            if name is not None:
+                used[name] += (int(fields[11]) + int(fields[12])) / tick  # utime + stime
+        times = os.times()
+        used["bench"] = times.user + times.system
+        return used
 
     def check_running(self) -> None:
         for name, proc in self.procs.items():
@@ -405,6 +427,7 @@ class Window:
     recon_stages: dict[str, str] = field(default_factory=dict)  # its stage medians, ms
     prints: int = 0              # the window's bursts whose print arrived (fingerprint topic)
     print_latency_ms: tuple[float, ...] = ()
+    cpu_cores: dict[str, float] = field(default_factory=dict)  # CPU used per process / s
 
     @property
     def published_per_s(self) -> float:
@@ -427,7 +450,10 @@ class Window:
                    else "")
                 + ("; recon's stage medians (ms): " + ", ".join(
                     f"{k.removesuffix('_ms')} {v}" for k, v in self.recon_stages.items())
-                   if self.recon_stages else ""))
+                   if self.recon_stages else "")
+                + ("; CPU (cores): " + ", ".join(
+                    f"{k} {v:.2f}" for k, v in self.cpu_cores.items())
+                   if self.cpu_cores else ""))
 
 
 def measure(observer: Observer, graph: Graph, rate: float, seconds: float,
@@ -435,6 +461,7 @@ def measure(observer: Observer, graph: Graph, rate: float, seconds: float,
     """Count bursts and clouds over ``seconds``, then wait for the window's last clouds;
     ``tick`` (if given) is called every 0.2 s of the window (the soak samples with it)."""
     counts_before = observer.recon_counts()
+    cpu_before = graph.cpu_seconds()
     t0 = time.time_ns()
     end = time.monotonic() + seconds
     while time.monotonic() < end:
@@ -443,6 +470,9 @@ def measure(observer: Observer, graph: Graph, rate: float, seconds: float,
             tick()
         time.sleep(min(0.2, max(end - time.monotonic(), 0.0)))
     t1 = time.time_ns()
+    cpu_after = graph.cpu_seconds()
+    cpu_cores = {name: (cpu_after[name] - cpu_before[name]) / ((t1 - t0) / 1e9)
+                 for name in cpu_after if name in cpu_before}
     seen = observer.seen
     # Grace: a burst stamped just before t1 is published a few ms later; its cloud later
     # still. Done when every burst of the window has its cloud, or when no cloud of the
@@ -476,7 +506,7 @@ def measure(observer: Observer, graph: Graph, rate: float, seconds: float,
         stages = {k: v for k, v in values.items() if k.endswith("_ms")}
     return Window(rate, (t1 - t0) / 1e9, len(window), received, len(window) - len(done),
                   tuple(latency), counts, stages, len(printed),
-                  tuple((printed[s] - s) / 1e6 for s in printed))
+                  tuple((printed[s] - s) / 1e6 for s in printed), cpu_cores)
 
 
 # ---------------------------------------------------------------------------- the kiosk
@@ -490,6 +520,7 @@ def window_figures(prefix: str, w: Window) -> dict[str, float]:
                                         else float("nan")),
         f"{prefix}.latency_ms_p95": (float(np.percentile(w.latency_ms, 95)) if w.latency_ms
                                      else float("nan")),
+        **{f"{prefix}.cpu_cores.{name}": used for name, used in w.cpu_cores.items()},
     }
 
 

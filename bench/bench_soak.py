@@ -162,6 +162,18 @@ class Bringup:
                 raise BenchError(f"{name} node (pid {pid}) died")
         self._check_bringup()
 
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU seconds (user + system) each node process has used so far (0 if gone), and
+        this process's as ``bench``; as bench_e2e's Graph.cpu_seconds."""
+        tick = os.sysconf("SC_CLK_TCK")
+        used = {}
+        for name, pid in self.pids.items():
+            fields = _stat_fields(pid)
+            used[name] = 0.0 if fields is None else (int(fields[11]) + int(fields[12])) / tick
+        times = os.times()
+        used["bench"] = times.user + times.system
+        return used
+
     def rss(self) -> dict[str, float]:
         try:
             return {name: rss_mb(pid) for name, pid in self.pids.items()}

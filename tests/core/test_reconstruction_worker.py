@@ -276,6 +276,44 @@ def test_the_queue_drops_the_oldest_and_the_worker_runs_the_rest(
     assert worker.ready and log.said("info", "reconstruction ready: nothing to compile")
 
 
+def test_the_next_burst_is_reconstructed_while_the_last_one_is_published(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two stages: while the output thread is held in burst 1's publish, the worker
+    reconstructs bursts 2 and 3 (one waits for the output stage, the next is being made);
+    the outputs still go out in order, and stop() lets the output stage finish."""
+    worker, _log, published = make_worker(queue_depth=4)
+    worker.on_lights(lights())
+    reconstructed = reconstructs_as(monkeypatch, made())
+    monkeypatch.setattr(worker_module, "warm_up_kernels",
+                        lambda: SimpleNamespace(summary="nothing to compile"))
+    release = threading.Event()
+    publishing: list[str] = []
+
+    def held_publish(made_burst: Any, burst: Burst) -> bool:
+        publishing.append(threading.current_thread().name)
+        if burst.burst_id == 1:
+            release.wait(timeout=10.0)
+        return published(made_burst, burst)
+
+    worker._publish = held_publish
+    for burst_id in (1, 2, 3, 4):
+        worker.on_burst(a_burst(burst_id))
+    thread = threading.Thread(target=worker.run, name="recon_worker")
+    thread.start()
+    try:
+        # burst 1 in publish, 2 handed over, 3 made and waiting to be handed over
+        poll_until(lambda: len(reconstructed) >= 3, 10.0, interval_s=0.01)
+        assert published.calls == [] and worker.done == 0
+    finally:
+        release.set()
+    poll_until(lambda: worker.done >= 4, 10.0, interval_s=0.01)
+    worker.stop()
+    thread.join(timeout=10.0)
+    assert not thread.is_alive()
+    assert [b.burst_id for _, b in published.calls] == [1, 2, 3, 4]
+    assert set(publishing) == {"recon_output"}
+
+
 def test_a_guarded_callback_counts_what_it_raises() -> None:
     worker, log, _ = make_worker()
 

@@ -7,6 +7,9 @@ import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError
 
+# Counts below this are exact in float32 (OpenCV's histograms count in float32).
+_EXACT_FLOAT32_COUNT = 2**24
+
 
 def finger_mask(images: np.ndarray, *, threshold: float = 0.15, open_px: int = 5,
                 saturation_level: float | None = None) -> np.ndarray:
@@ -44,6 +47,8 @@ def finger_mask(images: np.ndarray, *, threshold: float = 0.15, open_px: int = 5
     count, labels = cv2.connectedComponents(binary, connectivity=8)
     if count <= 1:
         return np.zeros(brightest.shape, dtype=bool)
+    if count == 2:  # one region (the usual case): no areas to compare
+        return labels == 1
     areas = np.bincount(labels.reshape(-1), minlength=count)
     largest = 1 + int(np.argmax(areas[1:]))
     return labels == largest
@@ -77,6 +82,10 @@ def _percentile_99(values: np.ndarray) -> float:
     position = 0.99 * (flat.size - 1)
     low = int(np.floor(position))
     high = min(low + 1, flat.size - 1)
-    cumulative = np.cumsum(np.bincount(flat, minlength=256))
+    if flat.size < _EXACT_FLOAT32_COUNT:  # OpenCV's histogram (float32 counts, exact here)
+        counts = cv2.calcHist([flat], [0], None, [256], [0, 256]).reshape(-1).astype(np.int64)
+    else:
+        counts = np.bincount(flat, minlength=256)
+    cumulative = np.cumsum(counts)
     v_low, v_high = np.searchsorted(cumulative, [low + 1, high + 1])
     return float(v_low + (position - low) * (float(v_high) - float(v_low)))

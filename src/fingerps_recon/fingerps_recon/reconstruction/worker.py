@@ -4,7 +4,10 @@ bursts reconstructed one by one, and the bookkeeping ``/diagnostics`` reports.
 :class:`ReconstructionWorker` is a plain class: the node's subscriptions hand it messages
 (``on_lights``, ``on_flat``, ``on_camera_info``, ``on_burst``), the node's worker thread runs
 :meth:`ReconstructionWorker.run`, and the node publishes what a burst made through the
-``publish`` callable it gives. The queue is bounded and drops the oldest burst (counted). A
+``publish`` callable it gives. The bursts go through two stages on two threads: the worker
+reconstructs burst n + 1 while an output thread publishes burst n (its messages and print;
+serial code only, so numba's parallel kernels stay on the worker's thread), in order, at
+most one burst waiting between them. The queue is bounded and drops the oldest burst (counted). A
 light calibration or flat field that cannot determine normals is refused on arrival (the
 previous one stays in force); anything a burst raises, expected or not, is logged in one
 line naming the burst and counted, and the worker goes on with the next burst. The health
@@ -14,6 +17,7 @@ failed or was degraded (or a refused calibration was not replaced), OK otherwise
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from collections import deque
@@ -65,6 +69,17 @@ class ReconSettings:
     options: ReconstructionOptions
     limits: BurstLimits
     mono16_full_scale: float
+
+
+@dataclass(frozen=True)
+class _Made:
+    """A burst reconstructed, on its way to the output stage."""
+
+    burst: Burst
+    arrival_ns: int
+    start_ns: int
+    made: BurstReconstruction
+    outcome: int
 
 
 class StageTimes:
@@ -133,6 +148,9 @@ class ReconstructionWorker:
         self._camera: CameraInfo | None = None
         self.prepared = PreparedCalibrations()
         self.ready = False
+        self._count_lock = threading.Lock()  # the two stages count failures
+        # Reconstructed bursts for the output thread (None: stop); at most one waits.
+        self._handoff: queue.Queue[_Made | None] = queue.Queue(maxsize=1)
 
     def guarded(self, what: str, callback: Callable[..., None]) -> Callable[..., None]:
         """``callback`` that logs and counts what it raises instead of ending the node."""
@@ -202,7 +220,17 @@ class ReconstructionWorker:
     # ------------------------------------------------------------------ work
     def run(self) -> None:
         """The worker thread: warm the kernels, then reconstruct the queued bursts (and
-        prepare the calibration ahead while idle) until :meth:`stop`."""
+        prepare the calibration ahead while idle) until :meth:`stop`, handing each to the
+        output thread it starts (and joins before it returns)."""
+        output = threading.Thread(target=self._output_stage, name="recon_output")
+        output.start()
+        try:
+            self._reconstruct_stage()
+        finally:
+            self._handoff.put(None)
+            output.join()
+
+    def _reconstruct_stage(self) -> None:
         self._warm_up()
         while True:
             with self._cv:
@@ -223,7 +251,14 @@ class ReconstructionWorker:
                     self._log.error(f"preparing the calibration: unexpected {one_line(exc)}",
                                     throttle_duration_sec=10.0)
                 continue
-            self.process(burst, arrival_ns)
+            made = self._attempt(burst, self._reconstruct, burst, arrival_ns)
+            if made is not None:
+                self._handoff.put(made)  # waits while the output stage is a burst behind
+
+    def _output_stage(self) -> None:
+        """The output thread: publish the reconstructed bursts in order until None."""
+        while (made := self._handoff.get()) is not None:
+            self._attempt(made.burst, self._deliver, made)
 
     def stop(self) -> None:
         """Make :meth:`run` return once the burst in hand is done."""
@@ -245,22 +280,33 @@ class ReconstructionWorker:
         self._log.info(f"reconstruction ready: {warm.summary}")
 
     def process(self, burst: Burst, arrival_ns: int) -> None:
-        """Reconstruct and publish one burst; whatever it raises is counted and logged."""
+        """Reconstruct and publish one burst in the calling thread (both stages); whatever
+        it raises is counted and logged."""
+        made = self._attempt(burst, self._reconstruct, burst, arrival_ns)
+        if made is not None:
+            self._attempt(burst, self._deliver, made)
+
+    def _attempt(self, burst: Burst, step: Callable[..., _T], *args: object) -> _T | None:
+        """``step(*args)`` of a burst's stage; None once what it raised is counted and
+        logged."""
         try:
-            self._reconstruct(burst, arrival_ns)
-        except IncompleteBurstError as exc:
-            self.incomplete += 1
-            self._note(_BAD, burst, exc)
-        except NoFingerError as exc:
-            self.failed += 1
-            self._note(_WARN, burst, exc)
-        except FingerpsError as exc:
-            self.failed += 1
-            self._note(_BAD, burst, exc)
+            return step(*args)
         except Exception as exc:  # the worker must never die
-            self.failed += 1
-            self.unexpected += 1
-            self._note(_BAD, burst, exc, unexpected=True)
+            with self._count_lock:
+                if isinstance(exc, IncompleteBurstError):
+                    self.incomplete += 1
+                    self._note(_BAD, burst, exc)
+                elif isinstance(exc, NoFingerError):
+                    self.failed += 1
+                    self._note(_WARN, burst, exc)
+                elif isinstance(exc, FingerpsError):
+                    self.failed += 1
+                    self._note(_BAD, burst, exc)
+                else:
+                    self.failed += 1
+                    self.unexpected += 1
+                    self._note(_BAD, burst, exc, unexpected=True)
+            return None
 
     def prepare_ahead(self) -> None:
         """While idle: prepare the calibration in force for the camera seen on camera_info
@@ -299,7 +345,8 @@ class ReconstructionWorker:
         if self._log_gate.opens(problem):
             self._log.error(self.last_error)
 
-    def _reconstruct(self, burst: Burst, arrival_ns: int) -> None:
+    def _reconstruct(self, burst: Burst, arrival_ns: int) -> _Made:
+        """The first stage: the burst reconstructed with the calibration in force."""
         start_ns = time.time_ns()
         lights = self.lights
         if lights is None:
@@ -322,12 +369,18 @@ class ReconstructionWorker:
             self.last_problem = (f"burst {burst.burst_id}: flat field {maps.shape} does not "
                                  f"fit the images {made.images.shape}; not used")
             self._log.warning(self.last_problem, throttle_duration_sec=10.0)
+        return _Made(burst, arrival_ns, start_ns, made, outcome)
+
+    def _deliver(self, item: _Made) -> None:
+        """The second stage: a reconstructed burst published, timed, counted, logged."""
+        burst, made, outcome = item.burst, item.made, item.outcome
         if not self._publish(made, burst):
             outcome = _WARN
         result = made.result
-        self.stages.add(time_nanoseconds(burst.header.stamp), arrival_ns, start_ns,
+        self.stages.add(time_nanoseconds(burst.header.stamp), item.arrival_ns, item.start_ns,
                         result.timings_ms["total"], time.time_ns())
-        self.done += 1
+        with self._count_lock:
+            self.done += 1
         self.last_error = ""
         self._outcomes.append(outcome)
         stages = ", ".join(f"{k} {v:.0f}" for k, v in result.timings_ms.items() if k != "total")
