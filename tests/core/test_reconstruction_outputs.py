@@ -45,7 +45,7 @@ def test_the_outputs_in_order_with_the_bursts_header(enhanced: bool) -> None:
     result = reconstruction(enhanced=enhanced)
     made = list(output_messages(result, HEADER))
     assert [o.topic for o in made] == list(OUTPUT_TOPICS) == [
-        topics.NORMALS, topics.NORMAL_MAP, topics.DEPTH, topics.ALBEDO, topics.POINTS]
+        topics.POINTS, topics.NORMALS, topics.DEPTH, topics.ALBEDO, topics.NORMAL_MAP]
     assert all(o.message.header == HEADER for o in made)
     by_topic = {o.topic: o for o in made}
     normals = by_topic[topics.NORMALS]
@@ -72,7 +72,8 @@ def test_each_output_is_built_only_when_asked_for(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(outputs, "normal_map_rgb",
                         lambda n, *, mask: drawn.append(1) or normal_map_rgb(n, mask=mask))
     made = output_messages(reconstruction(enhanced=True), HEADER)
-    assert next(made).topic == topics.NORMALS and not drawn
+    assert [next(made).topic for _ in range(4)] == [
+        topics.POINTS, topics.NORMALS, topics.DEPTH, topics.ALBEDO] and not drawn
     assert next(made).topic == topics.NORMAL_MAP and drawn == [1]
 
 
@@ -82,7 +83,7 @@ def test_only_the_outputs_asked_for_are_built(monkeypatch: pytest.MonkeyPatch) -
                         lambda n, *, mask: drawn.append(1) or normal_map_rgb(n, mask=mask))
     made = list(output_messages(reconstruction(enhanced=True), HEADER,
                                 (topics.POINTS, topics.DEPTH)))
-    assert [o.topic for o in made] == [topics.DEPTH, topics.POINTS] and not drawn
+    assert [o.topic for o in made] == [topics.POINTS, topics.DEPTH] and not drawn
     assert list(output_messages(reconstruction(enhanced=True), HEADER, ())) == []
 
 

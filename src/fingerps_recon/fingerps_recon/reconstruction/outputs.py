@@ -24,9 +24,10 @@ from fingerps_ros import topics
 from fingerps_ros.image_conversion import array_to_image
 from fingerps_ros.point_cloud_conversion import points_to_cloud
 
-OUTPUT_TOPICS = (topics.NORMALS, topics.NORMAL_MAP, topics.DEPTH, topics.ALBEDO,
-                 topics.POINTS)
-"""The topics of :func:`output_messages`, in their order."""
+OUTPUT_TOPICS = (topics.POINTS, topics.NORMALS, topics.DEPTH, topics.ALBEDO,
+                 topics.NORMAL_MAP)
+"""The topics of :func:`output_messages`, in their order: the point cloud first (what robot
+cells take), the picture for display last."""
 
 
 class Output(NamedTuple):
@@ -42,25 +43,25 @@ class Output(NamedTuple):
 def output_messages(result: Reconstruction, header: Header,
                     wanted: Collection[str] = OUTPUT_TOPICS) -> Iterator[Output]:
     """The outputs of one burst with the burst's ``header``, in :data:`OUTPUT_TOPICS`'s
-    order, of the topics in ``wanted`` (default all): the normals (32FC3, optical frame),
-    the normal map (rgb8, of the enhanced normals if there are any), depth and albedo
-    (32FC1), the points (x y z intensity)."""
-    if topics.NORMALS in wanted:
-        normals_optical = normals_array(result)
-        yield Output(topics.NORMALS, array_to_image(normals_optical, encoding="32FC3",
-                                                    header=header), normals_optical, "32FC3")
-    if topics.NORMAL_MAP in wanted:
-        rgb = normal_map_array(result)
-        yield Output(topics.NORMAL_MAP, array_to_image(rgb, encoding="rgb8", header=header),
-                     rgb, "rgb8")
-    for topic, image in ((topics.DEPTH, result.depth_m), (topics.ALBEDO, result.albedo)):
-        if topic in wanted:
-            yield Output(topic, array_to_image(image, encoding="32FC1", header=header), image,
-                         "32FC1")
+    order, of the topics in ``wanted`` (default all): the points (x y z intensity), the
+    normals (32FC3, optical frame), depth and albedo (32FC1), the normal map (rgb8, of the
+    enhanced normals if there are any)."""
     if topics.POINTS in wanted:
         yield Output(topics.POINTS, points_to_cloud(result.points_optical,
                                                     result.point_albedo, header=header),
                      None, "")
+    if topics.NORMALS in wanted:
+        normals_optical = normals_array(result)
+        yield Output(topics.NORMALS, array_to_image(normals_optical, encoding="32FC3",
+                                                    header=header), normals_optical, "32FC3")
+    for topic, image in ((topics.DEPTH, result.depth_m), (topics.ALBEDO, result.albedo)):
+        if topic in wanted:
+            yield Output(topic, array_to_image(image, encoding="32FC1", header=header), image,
+                         "32FC1")
+    if topics.NORMAL_MAP in wanted:
+        rgb = normal_map_array(result)
+        yield Output(topics.NORMAL_MAP, array_to_image(rgb, encoding="rgb8", header=header),
+                     rgb, "rgb8")
 
 
 def normals_array(result: Reconstruction) -> np.ndarray:
