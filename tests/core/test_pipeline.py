@@ -35,6 +35,7 @@ from fingerps_recon.photometric.pipeline import (
     prepare_calibration,
     reconstruct,
     reconstruct_prepared,
+    usable_measurements,
 )
 
 FULL_SCALE = 255.0
@@ -326,3 +327,19 @@ def test_a_burst_in_any_dtype_gives_the_same_reconstruction(rig: SimulatedRig,
         np.testing.assert_allclose(other.normals_ps, first.normals_ps, atol=1e-6)
         np.testing.assert_allclose(other.albedo, first.albedo, rtol=1e-6)
         np.testing.assert_allclose(other.depth_m, first.depth_m, rtol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_the_usable_measurements_are_those_strictly_between_the_levels(dtype: type) -> None:
+    """Integer images take integer bounds: the same map as the comparison in float64, at
+    integer, fractional, negative and out-of-range levels."""
+    top = np.iinfo(dtype).max if np.dtype(dtype).kind == "u" else 4095.0
+    rng = np.random.default_rng(3)
+    stack = rng.integers(0, int(top) + 1, size=(3, 17, 19)).astype(dtype)
+    stack.reshape(-1)[:4] = [0, 5, 6, top]  # the levels' neighbours are there
+    for lo, hi in [(5.0, 250.0), (5.3, 249.7), (-2.0, 1e9), (0.0, top), (6.0, 6.5),
+                   (top, top + 1.0), (-10.0, -1.0)]:
+        expected = (stack.astype(np.float64) > lo) & (stack.astype(np.float64) < hi)
+        got = usable_measurements(stack, lo, hi)
+        assert got.dtype == bool and got.shape == stack.shape
+        np.testing.assert_array_equal(got, expected, err_msg=f"{dtype} {lo} {hi}")

@@ -21,6 +21,7 @@ Views are perspective (per pixel, from the camera matrix) or orthographic (0, 0,
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -341,7 +342,7 @@ def reconstruct_prepared(
         t1 = time.perf_counter()
         lighting = prepared.hk_lighting or prepare_hk_lighting(
             lights, shape=shape, views=prepared.views, intensities=light_power)
-        usable = (stack > shadow_level) & (stack < limit)
+        usable = usable_measurements(stack, shadow_level, limit)
         hk = solve_hk_prepared(stack, lighting, mask=valid, init_normals=normals,
                                init_albedo=albedo, usable=usable, scale=hk_initial_scale,
                                iterations=options.hk_iterations, tol=options.hk_tol)
@@ -462,6 +463,21 @@ def _check_near_lights(leds: np.ndarray, camera_matrix: np.ndarray, shape: tuple
     towards = leds - centre * working_distance_m
     _check_conditioned(towards / np.linalg.norm(towards, axis=1, keepdims=True),
                        "the LEDs' directions at the image centre")
+
+
+def usable_measurements(stack: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """The (K, H, W) bool map of the measurements the solvers use: lo < I < hi (not
+    shadowed, not saturated). Integer images are compared with the equivalent integer
+    bounds (lo < I <=> I >= floor(lo) + 1; I < hi <=> I <= ceil(hi) - 1), in their own
+    dtype: numpy would otherwise convert every value to float64 first."""
+    if stack.dtype.kind != "u":
+        return (stack > lo) & (stack < hi)
+    top = int(np.iinfo(stack.dtype).max)
+    first, last = max(math.floor(lo) + 1, 0), min(math.ceil(hi) - 1, top)
+    if first > last:
+        return np.zeros(stack.shape, dtype=bool)
+    kind = stack.dtype.type
+    return (stack >= kind(first)) & (stack <= kind(last))
 
 
 def _timed(fn: Callable[..., _T], *args: object, **kwargs: object) -> tuple[_T, float]:
