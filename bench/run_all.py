@@ -44,6 +44,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_calib
+import bench_chunk_compression
 import bench_driver
 import bench_driver_publish
 import bench_e2e
@@ -61,7 +62,7 @@ SEPARATE_PREFIXES = ("soak.",)
 
 BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_publish,
               bench_recon_accuracy, bench_hk_iterations, bench_many_lights, bench_calib,
-              bench_e2e, bench_fingerprint)
+              bench_e2e, bench_fingerprint, bench_chunk_compression)
 
 AVX2_SUFFIX = ".avx2"
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from builtin_interfaces.msg import Time
@@ -486,3 +487,32 @@ def test_a_killed_writer_loses_at_most_the_open_chunk(tmp_path: Path) -> None:
     bag.flush()  # closes the open chunk early
     assert _messages_on_disk(bag.mcap_path) == 11
     bag.finish()
+
+
+def test_the_chunks_are_zstd_level_1_as_ros2_bag_record_writes_them(tmp_path: Path) -> None:
+    """The mcap Python writer's chunks at zstd level 1 (sessions/zstd_level.py), not its
+    library default 3: each chunk's bytes are level 1's compression of its content."""
+    import zstandard
+    from mcap.records import Chunk
+
+    bag = SessionBagWriter(tmp_path / "levels", chunk_size=256 * 1024)
+    bag.start()
+    bag.add_topic("/fingerps/burst", BURST_TYPE, offered_qos_yaml="[]")
+    rng = np.random.default_rng(5)
+    for i in range(4):  # image-like bytes: a smooth ramp with noise, compressible
+        ramp = (np.arange(200_000) // 700 + rng.integers(0, 6, 200_000)) % 256
+        bag.write("/fingerps/burst", serialize_message(_burst(i)) + ramp.astype(np.uint8).tobytes(),
+                  log_time_ns=T0 + i, publish_time_ns=T0 + i)
+    bag.finish()
+    chunks = []
+    with open(bag.mcap_path, "rb") as stream:
+        chunks = [r for r in StreamReader(stream, skip_magic=False, emit_chunks=True).records
+                  if isinstance(r, Chunk)]
+    assert chunks and all(c.compression == "zstd" for c in chunks)
+    for chunk in chunks:
+        content = zstandard.ZstdDecompressor().decompress(
+            chunk.data, max_output_size=chunk.uncompressed_size)
+        assert len(content) == chunk.uncompressed_size
+        level_1 = zstandard.ZstdCompressor(level=1).compress(content)
+        assert chunk.data == level_1
+        assert zstandard.ZstdCompressor(level=3).compress(content) != level_1

@@ -65,6 +65,7 @@ from fingerps_recon.sessions.message_definition import (
     load_message_definition,
     type_description_hash,
 )
+from fingerps_recon.sessions.zstd_level import use_zstd_level
 
 METADATA_FILENAME = "metadata.yaml"
 METADATA_VERSION = 9
@@ -521,6 +522,7 @@ class SessionBagWriter:
             raise SessionBagError(
                 f"cannot create {self.mcap_path}: {err.strerror or err}; "
                 "check the bags directory's permissions and free space") from None
+        use_zstd_level()  # the chunks at zstd level 1, as ros2 bag record writes them
         self._writer = Writer(
             self._file,  # type: ignore[arg-type]  # duck-typed stream
             chunk_size=self._chunk_size,
