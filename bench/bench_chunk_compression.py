@@ -25,7 +25,7 @@ import numpy as np
 import zstandard
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_recon_speed import _burst
+from bench_recon_speed import _burst, _node_calibration
 from figures_report import print_figures
 
 from fingerps_driver.simulation import RigConfig, SimulatedRig
@@ -33,7 +33,6 @@ from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import (
     Model,
     ReconstructionOptions,
-    prepare_calibration,
     reconstruct_prepared,
 )
 from fingerps_recon.sessions.session_bag import DEFAULT_CHUNK_SIZE
@@ -51,12 +50,8 @@ def session_bytes() -> bytes:
     rig = SimulatedRig(RigConfig())
     burst = _burst(rig)
     options = ReconstructionOptions(model=Model.HK, enhance=True)
-    prepared = prepare_calibration(
-        burst.lights_ps, camera_matrix=burst.camera_matrix, shape=burst.images.shape[1:],
-        intensities=burst.intensities, portions=burst.portions,
-        led_positions_optical=rig.led_positions_optical, options=options)
-    r = reconstruct_prepared(burst.images, prepared, full_scale=burst.full_scale,
-                             options=options)
+    r = reconstruct_prepared(burst.images, _node_calibration(rig, burst, options),
+                             full_scale=burst.full_scale, options=options)
     points = np.concatenate([r.points_optical, r.point_albedo[:, None]], axis=1)
     arrays = (burst.images, burst.images, r.normals_ps, r.depth_m, r.albedo,
               points.astype(np.float32), normal_map_rgb(r.enhanced_ps, mask=r.mask))

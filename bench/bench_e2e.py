@@ -180,6 +180,18 @@ def run_demo(env: dict[str, str], runs: int) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------------------- processes
+def cpu_seconds_from_stat(fields: list[str]) -> float:
+    """CPU seconds (user + system) of a process from its /proc/<pid>/stat fields after the
+    command name ([state, ppid, ...]: utime and stime are the 12th and 13th)."""
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def own_cpu_seconds() -> float:
+    """CPU seconds (user + system) this process has used: the benchmark's observer."""
+    times = os.times()
+    return times.user + times.system
+
+
 class Graph:
     """Node processes by executable name; each logs to ``<log_dir>/<name>_<n>.log``."""
 
@@ -202,7 +214,6 @@ class Graph:
         """CPU seconds (user + system) each node's processes (its session: the node and
         anything it started) have used so far, from /proc; this process's as ``bench``
         (the observer's subscriptions and deserialization)."""
-        tick = os.sysconf("SC_CLK_TCK")
         groups = {proc.pid: name for name, proc in self.procs.items()}
         used = dict.fromkeys(groups.values(), 0.0)
         for stat in Path("/proc").glob("[0-9]*/stat"):
@@ -212,9 +223,8 @@ class Graph:
                 continue  # gone meanwhile
             name = groups.get(int(fields[3]))  # the session id (field 6 of stat)
             if name is not None:
-                used[name] += (int(fields[11]) + int(fields[12])) / tick  # utime + stime
-        times = os.times()
-        used["bench"] = times.user + times.system
+                used[name] += cpu_seconds_from_stat(fields)
+        used["bench"] = own_cpu_seconds()
         return used
 
     def check_running(self) -> None:

@@ -27,14 +27,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_recon_speed import _burst
+from bench_recon_speed import _burst, _node_calibration
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_recon.photometric import hk_kernel
 from fingerps_recon.photometric.pipeline import (
     Model,
     ReconstructionOptions,
-    prepare_calibration,
     reconstruct_prepared,
 )
 
@@ -53,10 +52,7 @@ def run() -> dict[str, float]:
     burst = _burst(rig)
     truth = rig.finger_truth().normals_ps
     options = ReconstructionOptions(model=Model.HK)
-    prepared = prepare_calibration(
-        burst.lights_ps, camera_matrix=burst.camera_matrix, shape=burst.images.shape[1:],
-        intensities=burst.intensities, portions=burst.portions,
-        led_positions_optical=rig.led_positions_optical, options=options)
+    prepared = _node_calibration(rig, burst, options)
     bursts = [np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(1000 * i + k))
                         for k in range(rig.led_count)]) for i in range(BURSTS)]
 

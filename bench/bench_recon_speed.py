@@ -176,10 +176,21 @@ def _burst(rig: SimulatedRig) -> _Burst:
 
 from fingerps_recon.photometric.pipeline import (  # noqa: E402
     Model,
+    PreparedCalibration,
     ReconstructionOptions,
     prepare_calibration,
     reconstruct_prepared,
 )
+
+
+def _node_calibration(rig: SimulatedRig, burst: _Burst,
+                      options: ReconstructionOptions) -> PreparedCalibration:
+    """The calibration recon_node prepares for ``burst`` (near lights from the LED positions,
+    white-target irradiance, perspective views), with ``options``."""
+    return prepare_calibration(
+        burst.lights_ps, camera_matrix=burst.camera_matrix, shape=burst.images.shape[1:],
+        intensities=burst.intensities, portions=burst.portions,
+        led_positions_optical=rig.led_positions_optical, options=options)
 
 
 def peak_gflops(env: Mapping[str, str] | None = None) -> tuple[float, str]:
@@ -346,11 +357,7 @@ def measure(repeats: int = RUNS) -> SpeedReport:
     # prepared once (pipeline_prepare; recon_node does it when the calibration or the camera
     # changes), then pipeline.reconstruct_prepared per burst.
     def prepare(model: Model) -> object:
-        return prepare_calibration(
-            burst.lights_ps, camera_matrix=k_mat, shape=burst.images.shape[1:],
-            intensities=burst.intensities, portions=burst.portions,
-            led_positions_optical=rig.led_positions_optical,
-            options=ReconstructionOptions(model=model, enhance=True))
+        return _node_calibration(rig, burst, ReconstructionOptions(model=model, enhance=True))
 
     # As recon_node: A held at the previous burst's refit (burst_reconstruction.
     # PreparedCalibrations.hk_scale), here the A of a first, cold burst.
@@ -375,10 +382,7 @@ def measure(repeats: int = RUNS) -> SpeedReport:
     # cost of the iterations alone (the gathering and the start excluded).
     if solve_hk is not None:
         options = ReconstructionOptions(model=Model.HK)
-        prepared = prepare_calibration(
-            burst.lights_ps, camera_matrix=k_mat, shape=burst.images.shape[1:],
-            intensities=burst.intensities, portions=burst.portions,
-            led_positions_optical=rig.led_positions_optical, options=options)
+        prepared = _node_calibration(rig, burst, options)
         stack = burst.images.astype(np.float32)
         usable_near = (stack > shadow_level) & (stack < saturation_level)
         lam_near = solve_lambertian(stack, prepared.lights, intensities=prepared.light_power,

@@ -62,7 +62,16 @@ from fingerps_driver.errors import DemoError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_e2e
-from bench_e2e import BenchError, Observer, graph_env, load_line, measure, wait_until
+from bench_e2e import (
+    BenchError,
+    Observer,
+    cpu_seconds_from_stat,
+    graph_env,
+    load_line,
+    measure,
+    own_cpu_seconds,
+    wait_until,
+)
 from figures_report import exit_codes, print_figures
 from ros_domain import own_ros_domain
 
@@ -165,13 +174,11 @@ class Bringup:
     def cpu_seconds(self) -> dict[str, float]:
         """CPU seconds (user + system) each node process has used so far (0 if gone), and
         this process's as ``bench``; as bench_e2e's Graph.cpu_seconds."""
-        tick = os.sysconf("SC_CLK_TCK")
         used = {}
         for name, pid in self.pids.items():
             fields = _stat_fields(pid)
-            used[name] = 0.0 if fields is None else (int(fields[11]) + int(fields[12])) / tick
-        times = os.times()
-        used["bench"] = times.user + times.system
+            used[name] = 0.0 if fields is None else cpu_seconds_from_stat(fields)
+        used["bench"] = own_cpu_seconds()
         return used
 
     def rss(self) -> dict[str, float]:
