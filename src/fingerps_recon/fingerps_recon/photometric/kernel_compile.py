@@ -22,6 +22,9 @@ from types import ModuleType
 
 import numba
 
+# Imported for its effect: idle kernel threads sleep (set before numba's first parallel launch).
+import fingerps_recon.photometric.kernel_threads  # noqa: F401
+
 _OPTIONS = {"fastmath": {"contract"}, "error_model": "numpy", "nogil": True}
 
 

@@ -5,6 +5,14 @@ backend): at most :func:`thread_limit` threads, by default every core this proce
 on. ``recon_node``'s ``threads`` parameter sets it (:func:`set_thread_limit`): on a machine
 whose other cores are busy (the driver, a recorder), one thread can finish a burst sooner
 than two that wait for each other at every pass (``bench/bench_e2e.py`` measures both).
+
+Between kernels numba's threads sleep: importing this module sets ``OMP_WAIT_POLICY`` to
+``PASSIVE`` unless the environment sets it. numba's OpenMP threading layer (the one it picks
+where TBB is not installed) otherwise keeps its idle threads spinning for some 10 ms after
+each kernel, which on two cores takes the core that the ridge enhancement, the integration,
+the output thread or the driver should have (``bench/bench_recon_speed.py``). libgomp reads
+the variable when it is loaded, at numba's first parallel launch: a process that loaded it
+before (another library's OpenMP) keeps its own policy.
 """
 
 from __future__ import annotations
@@ -12,6 +20,8 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 _LIMIT: list[int] = [0]  # 0: every available core
 
