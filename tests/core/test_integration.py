@@ -200,6 +200,24 @@ def test_depth_to_points_back_projects_and_indexes() -> None:
     np.testing.assert_array_equal(intensity.ravel()[index], v * 60 + u)
 
 
+def test_depth_to_points_with_skew_reprojects_and_leaves_out_infinite_depths() -> None:
+    k = np.array([[800.0, 12.0, 30.0], [0.0, 820.0, 20.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.08, 0.1, (40, 60)).astype(np.float32)
+    depth[7, 8] = np.inf
+    mask = rng.random((40, 60)) < 0.7
+    mask[7, 8] = True
+    points, index = depth_to_points(depth, mask, camera_matrix=k)
+    expected = np.flatnonzero(mask & np.isfinite(depth))
+    np.testing.assert_array_equal(index, expected)  # raster order, the infinite one left out
+    v, u = np.divmod(index, 60)
+    x, y, z = points.T.astype(np.float64)
+    np.testing.assert_allclose(z, depth[v, u], rtol=0)
+    # u = fx x / z + s y / z + cx, v = fy y / z + cy
+    np.testing.assert_allclose(k[0, 0] * x / z + k[0, 1] * y / z + k[0, 2], u, atol=1e-3)
+    np.testing.assert_allclose(k[1, 1] * y / z + k[1, 2], v, atol=1e-3)
+
+
 def test_depth_to_points_bad_inputs_raise() -> None:
     with pytest.raises(FingerpsReconError, match="camera_matrix"):
         depth_to_points(np.ones((4, 5)), np.ones((4, 5), bool), camera_matrix=np.eye(2))

@@ -36,6 +36,7 @@ from fingerps_recon.surface import integration, print_kernel
 KERNEL_MODULES = ("fingerps_recon.photometric.hk_kernel",
                   "fingerps_recon.photometric.lambertian_kernel",
                   "fingerps_recon.photometric.normal_transform_kernel",
+                  "fingerps_recon.surface.back_projection_kernel",
                   "fingerps_recon.surface.integration_kernel",
                   "fingerps_recon.surface.print_kernel")
 _SIZE = 40          # synthetic image side, pixels

@@ -123,6 +123,7 @@ from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.mask_box import mask_bounding_box
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
 from fingerps_recon.surface import integration_kernel as kernels
+from fingerps_recon.surface.back_projection_kernel import back_project
 
 _SMALL_COMPONENT = 2048
 
@@ -974,27 +975,15 @@ def depth_to_points(
     k = checked_camera_matrix(camera_matrix)
     fx, s, cx = k[0]
     fy, cy = k[1, 1], k[1, 2]
-    h, w = depth.shape
-    keep = np.zeros((h, w), dtype=bool)
     box = mask_bounding_box(m)
     if box is None:
         return np.empty((0, 3), dtype=np.float32), np.empty(0, dtype=np.int64)
-    # Everything on the mask's bounding box only: planes there, then one gather each
-    # (raster order in the box is raster order in the image).
-    z = depth[box].astype(np.float32, copy=False)
-    with np.errstate(invalid="ignore"):
-        kept = m[box] & (z > 0) & (z < np.inf)  # NaN compares False
-    keep[box] = kept
-    index = np.flatnonzero(keep)
     rows, cols = box
-    y_row = ((np.arange(rows.start, rows.stop) - cy) / fy).astype(np.float32)[:, None]  # y_n
+    y_row = ((np.arange(rows.start, rows.stop) - cy) / fy).astype(np.float32)  # y_n
     x_col = ((np.arange(cols.start, cols.stop) - cx) / fx).astype(np.float32)  # x_n, no skew
-    points = np.empty((index.size, 3), dtype=np.float32)
-    y = z * y_row
-    points[:, 1] = y[kept]
-    x = z * x_col
-    if s != 0.0:
-        x -= np.float32(s / fx) * y
-    points[:, 0] = x[kept]
-    points[:, 2] = z[kept]
-    return points, index.astype(np.int64, copy=False)
+    most = int(np.count_nonzero(m[box]))
+    points = np.empty((most, 3), dtype=np.float32)
+    index = np.empty(most, dtype=np.int64)
+    count = back_project(np.ascontiguousarray(depth, dtype=np.float32), np.ascontiguousarray(m),
+                         rows.start, cols.start, y_row, x_col, np.float32(s / fx), points, index)
+    return points[:count], index[:count]
