@@ -210,6 +210,22 @@ def test_cost_history_is_non_increasing_and_iterations_counted() -> None:
     assert stopped.iterations < 50 and len(stopped.cost_history) == stopped.iterations + 1
     none, _ = _solve(images, mask, iterations=0)
     assert none.iterations == 0 and len(none.cost_history) == 1
+    assert res.mean_iterations == 8 and none.mean_iterations == 0
+
+
+def test_held_a_counts_the_iterations_the_chunks_did() -> None:
+    # With A held each chunk of pixels stops on its own: the mean over the chunks is at most
+    # the most any chunk did, and a noise-free chunk stops before a noisy one.
+    normals, mask = _surface(81)
+    rng = np.random.default_rng(4)
+    images = _render(normals, mask, rng.uniform(0.4, 0.6, mask.shape))
+    noisy = images * (1 + 0.02 * rng.standard_normal(images.shape))
+    clean = np.where(np.arange(mask.shape[0])[None, :, None] < mask.shape[0] // 2, images,
+                     noisy)
+    res, _ = _solve(clean, mask, scale=SCALE, iterations=20, tol=1e-6)
+    assert 0 < res.mean_iterations < res.iterations <= 20
+    none, _ = _solve(clean, mask, scale=SCALE, iterations=0)
+    assert none.mean_iterations == 0
 
 
 def test_lambertian_data_gives_scale_near_zero_and_the_lambertian_normals() -> None:

@@ -144,6 +144,10 @@ class HKResult:
         A's linear least-squares fit (with every rho) at the solution's normals: with A
         fitted, ``scale`` itself; with A held, where the next burst of the same rig should
         hold it (NaN if no pixel was valid).
+    mean_iterations : float
+        The iterations done, averaged over the chunks of pixels: with A fitted,
+        ``iterations``; with A held, less where chunks stopped early (the work done, e.g.
+        for a rate per iteration). NaN if no pixel was valid.
     """
 
     normals: np.ndarray
@@ -154,6 +158,7 @@ class HKResult:
     iterations: int
     cost_history: tuple[float, ...]
     refit_scale: float = float("nan")
+    mean_iterations: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -414,7 +419,7 @@ def _solve(
     return HKResult(
         normals=normals.reshape(h, w, 3), albedo=albedo.reshape(h, w), scale=float(a_scale),
         valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w), iterations=done,
-        cost_history=tuple(history), refit_scale=float(a_scale),
+        cost_history=tuple(history), refit_scale=float(a_scale), mean_iterations=float(done),
     )
 
 
@@ -452,6 +457,7 @@ def _solve_held(
         valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w),
         iterations=int(parts[:, 2].max()), cost_history=(float(initial), float(final)),
         refit_scale=max(num / den, 0.0) if den > 0 else scale,
+        mean_iterations=float(parts[:, 2].mean()),
     )
 
 
