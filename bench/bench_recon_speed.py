@@ -21,6 +21,9 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
 - cloud: ``height_to_distance`` + ``depth_to_points``.
 - lambert_total: flat_field + mask + lambertian + transform + integration_fast + cloud run
   back to back; lambert_total_perspective: the same with the perspective integration.
+- host_reference: a fixed numpy job on two burst-sized float32 stacks (product, square
+  root, sum), none of the project's code, timed just before the pipeline stages: the
+  shared host's speed at that moment, beside which the pipeline figures are read.
 - pipeline_prepare: ``fingerps_recon.photometric.pipeline.prepare_calibration`` for the demo's
   calibration (near lights from the LED positions, white-target irradiance, perspective
   views), its caches emptied: what recon_node does once per calibration and camera.
@@ -239,6 +242,16 @@ def _time(fn: Callable[[], object], repeats: int) -> tuple[object, tuple[float, 
     return result, tuple(times)
 
 
+def _host_reference(planes: np.ndarray) -> float:
+    """A fixed job of numpy alone on one thread over two burst-sized float32 stacks
+    (``recon.ms.host_reference``): a product, a square root and a sum, as memory-bound
+    as the reconstruction's passes."""
+    a, b = planes
+    out = np.multiply(a, b)
+    np.sqrt(out, out=out)
+    return float(out.sum(dtype=np.float64))
+
+
 def _uncached_prepare(prepare: Callable[[Model], object], model: Model) -> object:
     """``prepare(model)`` with pixel_rays' caches of directions emptied first (as for a new
     calibration or camera)."""
@@ -375,6 +388,12 @@ def measure(repeats: int = RUNS) -> SpeedReport:
         last_scale[model] = result.hk_scale
         return result
 
+    # The host's speed at this moment, on a job of none of this project's code: a shared
+    # host's speed changes by up to 2x within minutes (README), so a stage's figure is
+    # read beside it.
+    reference = np.random.default_rng(1).uniform(0, 1, (2, *burst.images.shape)).astype(
+        np.float32)
+    stage("host_reference", lambda: _host_reference(reference))
     stage("pipeline_prepare", lambda: _uncached_prepare(prepare, Model.HK))
     prepared_for = {model: prepare(model) for model in Model}
     stage("pipeline_lambert", lambda: pipeline(Model.LAMBERT))
