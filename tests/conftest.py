@@ -15,7 +15,16 @@
   threads, and ``no_emulator_threads_left`` (for ``pytest.mark.usefixtures``) fails a test
   that leaves one running.
 - ``emulator_script(*args)``: the emulator's console script in a process of its own
-  (``python -m fingerps_driver.board.board_emulator``), killed at teardown if still running.
+  (``python -m fingerps_driver.board.board_emulator``; ``module=`` another one, e.g. the
+  firmware simulator's), killed at teardown if still running.
+- ``firmware_board``: the board's real firmware under simavr (``FirmwareSim``) on a
+  pseudo-terminal linked at ``tmp_path / "firmware_board"``; ``traced_firmware_board`` the
+  same tracing its pins and UART to ``tmp_path / "board.vcd"`` (complete once stopped). A
+  firmware that is not built fails the test with the message to run ``make firmware``
+  (never skipped).
+- ``board_port``: parametrised over the two boards, ``emulator`` and ``firmware``: a
+  ``BoardPort`` (kind, port, INFO's firmware token and the emulator or the simulator), so
+  that one suite runs against both.
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ import sys
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -38,6 +48,7 @@ if TYPE_CHECKING:
     from rclpy.node import Node
 
     from fingerps_driver.board.board_emulator import BoardEmulator
+    from fingerps_driver.board.firmware_sim import FirmwareSim
     from fingerps_driver.simulation import SimulatedRig
 
 INSTALL = Path(__file__).resolve().parents[1] / "install"
@@ -157,14 +168,18 @@ def emulator(tmp_path: Path) -> Iterator[BoardEmulator]:
 def emulator_script() -> Iterator[Callable[..., subprocess.Popen]]:
     """``emulator_script(*args)`` starts ``python -m fingerps_driver.board.board_emulator
     *args`` with this process's ``sys.path``, its stdout a text pipe; a process still running at
-    teardown is killed."""
+    teardown is killed. Keywords: ``module`` another module of the package (e.g.
+    ``board.firmware_sim``), ``env`` extra environment variables, ``stderr=True`` its
+    stderr a text pipe too."""
     started: list[subprocess.Popen] = []
 
-    def start(*args: str) -> subprocess.Popen:
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    def start(*args: str, module: str = "board.board_emulator",
+              env: dict[str, str] | None = None, stderr: bool = False) -> subprocess.Popen:
+        environment = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), **(env or {})}
         process = subprocess.Popen(
-            [sys.executable, "-m", "fingerps_driver.board.board_emulator", *args],
-            stdout=subprocess.PIPE, text=True, env=env)
+            [sys.executable, "-m", f"fingerps_driver.{module}", *args],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE if stderr else None, text=True,
+            env=environment)
         started.append(process)
         return process
 
@@ -173,5 +188,60 @@ def emulator_script() -> Iterator[Callable[..., subprocess.Popen]]:
         if process.poll() is None:
             process.kill()
             process.wait()
-        if process.stdout is not None:
-            process.stdout.close()
+        for stream in (process.stdout, process.stderr):
+            if stream is not None:
+                stream.close()
+
+
+def _firmware_sim(link: Path, vcd: Path | None) -> Iterator[FirmwareSim]:
+    from fingerps_driver.board.firmware_sim import FirmwareSim
+    from fingerps_driver.errors import FirmwareNotBuiltError
+    sim = FirmwareSim(str(link), vcd=None if vcd is None else str(vcd))
+    try:
+        sim.start()
+    except FirmwareNotBuiltError as exc:
+        pytest.fail(str(exc))
+    try:
+        yield sim
+    finally:
+        sim.stop()
+
+
+@pytest.fixture
+def firmware_board(tmp_path: Path) -> Iterator[FirmwareSim]:
+    """The board's firmware under simavr on a pty linked at ``tmp_path / "firmware_board"``;
+    stopped (SIGTERM) at teardown."""
+    yield from _firmware_sim(tmp_path / "firmware_board", None)
+
+
+@pytest.fixture
+def traced_firmware_board(tmp_path: Path) -> Iterator[FirmwareSim]:
+    """``firmware_board`` tracing its pins and UART bytes to ``tmp_path / "board.vcd"``
+    (complete once stopped). Not for long runs with LEDs at levels 1..254: every PWM edge
+    is a line of the trace."""
+    yield from _firmware_sim(tmp_path / "firmware_board", tmp_path / "board.vcd")
+
+
+@dataclass(frozen=True)
+class BoardPort:
+    """One of the two boards the board tests run against."""
+
+    kind: str
+    """``emulator`` (``BoardEmulator``) or ``firmware`` (the AVR firmware under simavr)."""
+    port: str
+    firmware: str
+    """What it answers ``INFO`` (with 7 LEDs)."""
+    emulator: BoardEmulator | None = None
+    sim: FirmwareSim | None = None
+
+
+@pytest.fixture(params=["emulator", "firmware"])
+def board_port(request: pytest.FixtureRequest) -> BoardPort:
+    """The emulator's or the firmware's pty (7 LEDs each)."""
+    if request.param == "emulator":
+        from fingerps_driver.board.board_emulator import FIRMWARE
+        emulator = request.getfixturevalue("emulator")
+        return BoardPort("emulator", emulator.port, FIRMWARE, emulator=emulator)
+    from fingerps_driver.board.firmware_sim import FIRMWARE_NAME
+    sim = request.getfixturevalue("firmware_board")
+    return BoardPort("firmware", sim.port, FIRMWARE_NAME, sim=sim)

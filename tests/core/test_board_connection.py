@@ -195,6 +195,53 @@ def test_a_closed_connection_stops_reconnecting(tmp_path):
         assert timers.started == []
 
 
+def test_the_trigger_is_set_at_connect_and_again_after_a_reconnect(tmp_path):
+    log, timers = Mock(), Timers()
+    link = str(tmp_path / "board")
+    with BoardEmulator(7, link_path=link) as emulator:
+        settings = BoardSettings(port=link, trigger_delay_us=100, trigger_width_us=50)
+        board = _connection(settings, log, timers)
+        assert board.open() is None
+        assert emulator.trigger == (100, 50)
+        emulator.disconnect()  # power lost: the board's trigger is off again
+        assert emulator.trigger == (0, 0)
+        board.lost("cable")
+        emulator.reconnect()
+        timers.fire()
+        assert board.state is BoardState.CONNECTED and emulator.trigger == (100, 50)
+        board.close()
+
+
+def test_a_trigger_left_on_by_an_earlier_run_is_switched_off(tmp_path):
+    log, timers = Mock(), Timers()
+    with BoardEmulator(7, link_path=str(tmp_path / "board")) as emulator:
+        board = _connection(BoardSettings(port=emulator.port, trigger_delay_us=100,
+                                          trigger_width_us=50), log, timers)
+        board.open()
+        board.close()
+        assert emulator.trigger == (100, 50)  # a board keeps it over a new connection
+        board = _connection(BoardSettings(port=emulator.port), log, timers)
+        board.open()
+        assert emulator.trigger == (0, 0)
+        board.close()
+
+
+def test_a_board_without_a_trigger_is_refused_only_when_one_is_asked_for(tmp_path):
+    log, timers = Mock(), Timers()
+    with BoardEmulator(7, link_path=str(tmp_path / "board"), with_trigger=False) as emulator:
+        board = _connection(BoardSettings(port=emulator.port, wait_for_port=True,
+                                          trigger_width_us=20), log, timers)
+        with pytest.raises(FingerpsDriverError, match=(
+                r"has no camera trigger \(its firmware answers TRIG with ERR,CMD\) but "
+                "trigger_width_us is 20: flash the fingerps firmware")):
+            board.open()
+        assert not board.led_board.is_open
+        board.close()
+        board = _connection(BoardSettings(port=emulator.port), log, timers)
+        assert board.open() is None and board.state is BoardState.CONNECTED
+        board.close()
+
+
 def test_without_an_emulator_the_acknowledged_mask_is_what_is_lit(tmp_path):
     log, timers = Mock(), Timers()
     with BoardEmulator(7, link_path=str(tmp_path / "board")) as emulator:

@@ -54,6 +54,8 @@ def test_request_wire_format_is_as_specified():
         Request(4, Command.OFF),
         Request(254, Command.LEVEL, (3, 0)),
         Request(255, Command.STATE),
+        Request(6, Command.TRIG, (0, 0)),
+        Request(7, Command.TRIG, (65535, 100)),
     ],
 )
 def test_request_round_trip(request_):
@@ -130,7 +132,9 @@ def test_seq_wraps_and_is_bounded():
 BAD_REQUESTS = {  # request bodies (seq 3) by the error code they must carry
     ErrorCode.UNKNOWN_COMMAND: ["3,BLINK", "3,ping"],
     ErrorCode.BAD_ARGUMENT: ["3,LEDS", "3,LEDS,1,2", "3,LEDS,XY", "3,LEDS,123456789", "3,PING,1",
-                             "3,LEVEL,1", "3,LEVEL,1,256", "3,LEVEL,1,-5", "3,LEVEL,256,5"],
+                             "3,LEVEL,1", "3,LEVEL,1,256", "3,LEVEL,1,-5", "3,LEVEL,256,5",
+                             "3,TRIG", "3,TRIG,1", "3,TRIG,1,2,3", "3,TRIG,65536,1",
+                             "3,TRIG,1,65536", "3,TRIG,-1,1", "3,TRIG,1,0x10"],
     ErrorCode.BAD_FRAME: ["3,", "3,LEDS,,"],
 }
 
@@ -178,6 +182,23 @@ def test_crlf_and_lower_case_checksum_accepted():
     assert decode_reply(line.rstrip(b"\r\n")) == Reply(12, ("7F",))
 
 
+def test_trigger_times_go_up_to_65535_us_and_an_older_board_does_not_know_trig():
+    assert decode_request(_line(b"#", "9,TRIG,065535,00")) == Request(9, Command.TRIG,
+                                                                       (65535, 0))
+    with pytest.raises(ProtocolError, match="65536 exceeds 65535") as info:
+        decode_request(_line(b"#", "9,TRIG,10,65536"))
+    assert info.value.code is ErrorCode.BAD_ARGUMENT
+    assert decode_request(_line(b"#", "9,LEVEL,1,255")).args == (1, 255)
+    with pytest.raises(ProtocolError, match="256 exceeds 255"):
+        decode_request(_line(b"#", "9,LEVEL,1,256"))  # TRIG's maximum is TRIG's only
+    older = tuple(c for c in Command if c is not Command.TRIG)
+    for body in ("9,TRIG,10,20", "9,TRIG,1"):  # CMD before any argument check
+        with pytest.raises(ProtocolError, match="unknown command 'TRIG'") as info:
+            decode_request(_line(b"#", body), commands=older)
+        assert (info.value.code, info.value.seq) == (ErrorCode.UNKNOWN_COMMAND, 9)
+    assert decode_request(_line(b"#", "9,PING"), commands=older) == Request(9, Command.PING)
+
+
 def test_invalid_messages_are_refused_on_encode():
     with pytest.raises(ValueError):
         Request(1, Command.LEDS)  # missing mask
@@ -185,6 +206,8 @@ def test_invalid_messages_are_refused_on_encode():
         Request(1, Command.LEVEL, (0, 256))
     with pytest.raises(ValueError):
         Request(1, Command.LEDS, (-1,))
+    with pytest.raises(ValueError, match=r"trigger width 65536 us outside 0\.\.65535"):
+        Request(1, Command.TRIG, (0, 65536))
     with pytest.raises(ValueError):
         Reply(1, ("a,b",))  # a comma would split the field
     with pytest.raises(ValueError):

@@ -35,9 +35,10 @@ def _descriptor(name: str) -> ParameterDescriptor:
 
 def test_every_parameter_once_in_declaration_order():
     names = [row.name for row in table.driver_parameters(_declared().__getitem__)]
-    assert len(names) == len(set(names)) == 42
-    assert names[:8] == ["port", "baudrate", "board_timeout", "board_retries", "wait_for_port",
-                         "reconnect_initial_s", "reconnect_max_s", "led_count"]
+    assert len(names) == len(set(names)) == 44
+    assert names[:10] == ["port", "baudrate", "board_timeout", "board_retries", "wait_for_port",
+                          "reconnect_initial_s", "reconnect_max_s", "led_count",
+                          "trigger_delay_us", "trigger_width_us"]
     assert names[-1] == "sim.board_control" and set(table.FINGER_POSE) <= set(names)
 
 
@@ -54,6 +55,10 @@ def test_descriptors_carry_ranges_and_flags():
     rate = _descriptor("rate")
     assert not rate.read_only
     assert [(r.from_value, r.to_value) for r in rate.floating_point_range] == [(0.0, 30.0)]
+    for name in ("trigger_delay_us", "trigger_width_us"):
+        trigger = _descriptor(name)
+        assert trigger.read_only and "trigger" in trigger.description
+        assert [(r.from_value, r.to_value) for r in trigger.integer_range] == [(0, 65535)]
     assert _descriptor("exposure_times").dynamic_typing
     assert _descriptor("led_levels").dynamic_typing
     assert not _descriptor("led_order").dynamic_typing
@@ -107,12 +112,14 @@ def test_the_defaults_read_back_as_the_settings_defaults():
 def test_settings_read_what_is_set():
     values = _declared(port="/dev/ttyACM0", reconnect_initial_s=2.0, reconnect_max_s=1.0,
                        camera="v4l2", camera_device="2", led_order=[3, 1],
+                       trigger_delay_us=100, trigger_width_us=50,
                        exposure_times=[0.001 * (i + 1) for i in range(7)],
                        **{"sim.board_control": "/tmp/ctl", "sim.finger_identity": 4,
                           "sim.finger_shift_mm": [1.0, -2.0]})
     board = table.board_settings(values.__getitem__)
     assert (board.port, board.control, board.backoff) == ("/dev/ttyACM0", "/tmp/ctl",
                                                           Backoff(2.0, 2.0))
+    assert (board.trigger_delay_us, board.trigger_width_us) == (100, 50)
     camera = table.camera_settings(values.__getitem__)
     assert (camera.backend, camera.device, camera.exposure_s) == (CameraBackend.V4L2, "2",
                                                                   0.004)

@@ -18,6 +18,7 @@ import numpy as np
 from fingerps_calib.intrinsics.camera_info_url import DEFAULT_CAMERA_INFO_URL
 from fingerps_driver.board.backoff import Backoff
 from fingerps_driver.board.board_connection import SIM_PORT, BoardSettings
+from fingerps_driver.board.board_protocol import MAX_TRIGGER_US
 from fingerps_driver.cameras.camera_setup import CameraBackend, CameraSettings, SimSettings
 from fingerps_driver.capture.burst_plan import (
     MAX_EXPOSURE_S,
@@ -126,6 +127,16 @@ def driver_parameters(value: Values) -> tuple[ParameterRow, ...]:
         ParameterRow(
             "led_count", 7, "Number of LEDs on the board", min_value=3, max_value=16,
             integer=True, read_only=True),
+        ParameterRow(
+            "trigger_delay_us", 0,
+            "Camera trigger: microseconds from the LEDs' switch to the trigger pulse (the "
+            "board's TRIG command; the AVR firmware rounds up to 16 us)",
+            min_value=0, max_value=MAX_TRIGGER_US, integer=True, read_only=True),
+        ParameterRow(
+            "trigger_width_us", 0,
+            "Camera trigger: pulse width in microseconds after every LED switch; 0 = no "
+            "trigger (a board without one is then fine). Set at connect and reconnect",
+            min_value=0, max_value=MAX_TRIGGER_US, integer=True, read_only=True),
         ParameterRow(
             "led_order", lambda: list(range(led_count())),
             "LEDs captured in a burst, in capture order (0-based, each at most once; "
@@ -292,7 +303,9 @@ def board_settings(value: Values) -> BoardSettings:
         baudrate=int(value("baudrate")), timeout_s=float(value("board_timeout")),
         retries=int(value("board_retries")), wait_for_port=bool(value("wait_for_port")),
         backoff=Backoff(initial_s, max(float(value("reconnect_max_s")), initial_s)),
-        control=str(value("sim.board_control")))
+        control=str(value("sim.board_control")),
+        trigger_delay_us=int(value("trigger_delay_us")),
+        trigger_width_us=int(value("trigger_width_us")))
 
 
 def burst_plan(value: Values) -> BurstPlan:

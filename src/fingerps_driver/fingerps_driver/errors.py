@@ -77,6 +77,11 @@ class BoardRejectedError(BoardError):
         self.code = code
 
 
+class BoardUnsupportedError(BoardRejectedError):
+    """The board does not know a command (it answered ``ERR,CMD``): an older firmware, e.g.
+    one without the camera trigger (``LedBoard.trigger``)."""
+
+
 class WrongBoardError(BoardError):
     """The board answers but does not fit the configuration (too few LEDs); raised when
     ``board.board_connection.BoardConnection`` opens it (never waited for)."""
@@ -86,6 +91,11 @@ class BoardEmulatorError(FingerpsDriverError):
     """The board emulator (``board.board_emulator``) cannot do what was asked: started
     twice or not started, its link path or socket path taken, a control socket it cannot
     serve or reach, a control command refused."""
+
+
+class FirmwareNotBuiltError(BoardEmulatorError):
+    """The LED board's firmware or its simavr harness (``board.firmware_sim``) is not built:
+    run ``make firmware``."""
 
 
 # --- cameras/ -------------------------------------------------------------------------------

@@ -22,7 +22,12 @@ from fingerps_driver.board.backoff import Backoff
 from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorControl
 from fingerps_driver.board.board_protocol import mask_to_indices
 from fingerps_driver.board.led_board import LedBoard
-from fingerps_driver.errors import BoardError, FingerpsDriverError, WrongBoardError
+from fingerps_driver.errors import (
+    BoardError,
+    BoardUnsupportedError,
+    FingerpsDriverError,
+    WrongBoardError,
+)
 from fingerps_ros.log import Log
 
 SIM_PORT = "sim"
@@ -58,6 +63,8 @@ class BoardSettings:
         Delays between attempts to reopen the board.
     control : str
         Control socket of a ``board_emulator`` process, or empty.
+    trigger_delay_us, trigger_width_us : int
+        The camera trigger (``LedBoard.trigger``), set at every connect; width 0: off.
     """
 
     port: str = SIM_PORT
@@ -68,6 +75,8 @@ class BoardSettings:
     wait_for_port: bool = False
     backoff: Backoff = field(default_factory=lambda: Backoff(0.5, 5.0))
     control: str = ""
+    trigger_delay_us: int = 0
+    trigger_width_us: int = 0
 
 
 class BoardConnection:
@@ -163,10 +172,12 @@ class BoardConnection:
             self.schedule_reconnect()
 
     def _connect(self) -> None:
-        """Open the port, check the board, switch everything off; raises ``BoardError``."""
+        """Open the port, check the board, switch everything off, set the camera trigger;
+        raises ``BoardError``."""
         board = self.led_board
         assert board is not None
-        led_count = self.settings.led_count
+        settings = self.settings
+        led_count = settings.led_count
         try:
             board.open()
             info = board.info()
@@ -175,12 +186,27 @@ class BoardConnection:
                     f"the board on {board.port!r} has {info.led_count} LEDs but led_count is "
                     f"{led_count}; set led_count to at most {info.led_count}")
             board.all_off()
+            self._set_trigger(board)
         except BoardError:
             board.close()
             raise
         self.firmware = info.firmware
         self.state = BoardState.CONNECTED
         self.error = ""
+
+    def _set_trigger(self, board: LedBoard) -> None:
+        """Send the trigger setting; off (width 0) is also sent, so that no pulse is left
+        from an earlier run, but a board without a trigger is fine then."""
+        delay_us, width_us = self.settings.trigger_delay_us, self.settings.trigger_width_us
+        try:
+            board.trigger(delay_us, width_us)
+        except BoardUnsupportedError:
+            if width_us:
+                raise WrongBoardError(
+                    f"the board on {board.port!r} has no camera trigger (its firmware answers "
+                    f"TRIG with ERR,CMD) but trigger_width_us is {width_us}: flash the "
+                    "fingerps firmware (docs/board_firmware.md) or set trigger_width_us to 0"
+                ) from None
 
     @property
     def lit_leds(self) -> Callable[[], Sequence[int]]:

@@ -120,6 +120,9 @@ class BoardEmulator(_Served):
         Firmware token reported by ``INFO``.
     history_limit : int
         Switches kept in ``history`` (the oldest are forgotten), so a long run stays bounded.
+    with_trigger : bool
+        False: an older board without the camera trigger, which answers ``TRIG`` with
+        ``ERR,CMD``.
     """
 
     def __init__(
@@ -131,6 +134,7 @@ class BoardEmulator(_Served):
         link_path: str | None = None,
         firmware: str = FIRMWARE,
         history_limit: int = 10_000,
+        with_trigger: bool = True,
     ) -> None:
         if not 1 <= led_count <= MAX_LEDS:
             raise ValueError(f"led_count {led_count} outside 1..{MAX_LEDS}")
@@ -147,6 +151,8 @@ class BoardEmulator(_Served):
         self._lock = threading.Lock()
         self._mask = 0
         self._levels = [MAX_LEVEL] * led_count
+        self._trigger = (0, 0)
+        self._commands = tuple(c for c in Command if with_trigger or c is not Command.TRIG)
         self._history: collections.deque[tuple[float, int]] = collections.deque(
             maxlen=history_limit
         )
@@ -207,6 +213,7 @@ class BoardEmulator(_Served):
                 self._history.append((time.monotonic(), 0))
             self._mask = 0
             self._levels = [MAX_LEVEL] * self._led_count
+            self._trigger = (0, 0)
             self._faults.clear()
 
     def _cut_power_later(self, served: threading.Event) -> None:
@@ -264,6 +271,14 @@ class BoardEmulator(_Served):
         """Drive level 0..255 of every LED."""
         with self._lock:
             return tuple(self._levels)
+
+    @property
+    def trigger(self) -> tuple[int, int]:
+        """(delay_us, width_us) of the camera trigger as the last ``TRIG`` set it; width 0:
+        off (the power-up state). The emulator has no trigger output: this is the setting
+        only."""
+        with self._lock:
+            return self._trigger
 
     @property
     def history(self) -> list[tuple[float, int]]:
@@ -405,7 +420,7 @@ class BoardEmulator(_Served):
         with self._lock:
             self._requests += 1
         try:
-            request = decode_request(line)
+            request = decode_request(line, commands=self._commands)
         except ProtocolError as exc:
             if exc.seq is None:
                 return None
@@ -431,6 +446,9 @@ class BoardEmulator(_Served):
                     )
                 self._levels[index] = level
                 return Reply(seq)
+            if command is Command.TRIG:
+                self._trigger = (args[0], args[1])
+                return Reply(seq)
             mask = args[0] if command is Command.LEDS else 0
             if mask >> self._led_count:
                 return Reply.failure(
@@ -447,7 +465,8 @@ class BoardEmulator(_Served):
 CONTROL_COMMANDS = {
     "ping": "answer true",
     "lit": "mask of the LEDs lit now (int)",
-    "state": "mask, lit LEDs, levels, connected, device, port, requests, pending faults",
+    "state": "mask, lit LEDs, levels, trigger, connected, device, port, requests, "
+             "pending faults",
     "history [N]": "the last N (default all) switches as [[time.monotonic(), mask], ...]",
     "inject FAULT [COUNT] [after N]": "FAULT: drop_reply, corrupt_byte, slow_reply, disconnect",
     "clear": "forget the faults not yet struck",
@@ -599,7 +618,8 @@ class EmulatorControlServer(_Served):
             return emu.lit_mask
         if command == "state" and not args:
             return {"mask": emu.lit_mask, "lit": list(emu.lit_leds()),
-                    "levels": list(emu.levels), "connected": emu.connected,
+                    "levels": list(emu.levels), "trigger": list(emu.trigger),
+                    "connected": emu.connected,
                     "device": emu.device, "port": emu.port, "requests": emu.request_count,
                     "pending_faults": emu.pending_faults}
         if command == "history" and len(args) <= 1:

@@ -41,16 +41,36 @@ Commands (all idempotent, so resending one is always safe)::
                                                       at once if the LED is lit
     STATE                OK,<hexmask>,<lvl0>,...      none; the mask lit now and the
                                                       level of every LED
+    TRIG,<delay>,<width> OK                           camera trigger pulse after every
+                                                      LEDS: delay and width in us,
+                                                      0..65535; width 0 = off (default)
 
 The board acknowledges ``LEDS``/``OFF`` only once the LEDs are switched, so the host may
 start an exposure as soon as the reply has arrived.
+
+Camera trigger (``TRIG``, an addition: a board without a trigger output answers it
+``ERR,CMD``, so the host can tell). After ``TRIG,<delay_us>,<width_us>`` with a width
+above 0, every acknowledged ``LEDS`` request (any mask, ``00`` included: a dark frame)
+makes the board's trigger output rise ``delay_us`` after the LEDs switched and stay high
+``width_us``; the board may round both up to its timer's step (the AVR firmware: whole
+16 us PWM periods). A new ``LEDS`` restarts the pulse; ``OFF`` and the host-silence
+switch-off (below) cancel one under way. ``TRIG`` itself switches nothing and its setting
+is kept until the next ``TRIG`` or reset; at power-up and after a reset the trigger is off
+(width 0, delay 0). The ``LEDS`` reply does not wait for the pulse. Errors as for
+``LEVEL``: ``ARG`` for a wrong argument count or a number that is not decimal 0..65535.
+
+Host silence: a board may switch every LED off when no request line it answered has come
+for a while, so that a crashed host does not leave an LED burning (the AVR firmware: 2 s;
+a host that keeps LEDs lit longer sends ``PING`` or ``STATE`` now and then). The emulator
+does not.
 
 Error codes (``ERR,<code>,<text>``; the text is for humans):
 
 - ``CRC``: checksum mismatch. The host resends with a new seq.
 - ``FRAME``: malformed line (bad seq, empty field, bad character). The host resends.
 - ``CMD``: unknown command.
-- ``ARG``: wrong number of arguments or an unparsable/invalid value (level > 255).
+- ``ARG``: wrong number of arguments or an unparsable/invalid value (level > 255, a
+  trigger time > 65535).
 - ``RANGE``: LED index or mask bit beyond the board's LED count.
 
 A request the board cannot attribute to a seq (garbled beyond the seq field) gets no
@@ -65,6 +85,7 @@ same command with a new seq. ``CMD``, ``ARG`` and ``RANGE`` errors are not retri
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 from enum import Enum
 from typing import TypeVar
@@ -77,6 +98,7 @@ MAX_LINE_BYTES = 255
 MAX_LEDS = 32
 SEQ_MODULO = 256
 MAX_LEVEL = 255
+MAX_TRIGGER_US = 65535
 _FORBIDDEN = frozenset(",*#!")
 _HEX_DIGITS = frozenset("0123456789abcdefABCDEF")
 _E = TypeVar("_E", bound=Enum)
@@ -91,14 +113,21 @@ class Command(Enum):
     OFF = "OFF"
     LEVEL = "LEVEL"
     STATE = "STATE"
+    TRIG = "TRIG"
 
     @property
     def arg_count(self) -> int:
-        """Arguments the command takes: ``LEDS`` a mask, ``LEVEL`` an index and a level."""
+        """Arguments the command takes: ``LEDS`` a mask, ``LEVEL`` an index and a level,
+        ``TRIG`` a delay and a width."""
         return _ARG_COUNT.get(self, 0)
 
+    @property
+    def arg_maximum(self) -> int:
+        """Largest value of a decimal argument (``LEVEL``: 255, ``TRIG``: 65535 us)."""
+        return MAX_TRIGGER_US if self is Command.TRIG else MAX_LEVEL
 
-_ARG_COUNT = {Command.LEDS: 1, Command.LEVEL: 2}
+
+_ARG_COUNT = {Command.LEDS: 1, Command.LEVEL: 2, Command.TRIG: 2}
 
 
 class ErrorCode(Enum):
@@ -206,7 +235,8 @@ class Request:
     """One host -> board request.
 
     ``args`` are integers: ``LEDS`` takes ``(mask,)``, ``LEVEL`` takes ``(index, level)``,
-    the others none. Invalid values raise ``ValueError`` (a programming error).
+    ``TRIG`` takes ``(delay_us, width_us)``, the others none. Invalid values raise
+    ``ValueError`` (a programming error).
     """
 
     seq: int
@@ -230,6 +260,10 @@ class Request:
                 raise ValueError(f"LED index {index} outside 0..{MAX_LEVEL}")
             if not 0 <= level <= MAX_LEVEL:
                 raise ValueError(f"level {level} outside 0..{MAX_LEVEL}")
+        elif self.command is Command.TRIG:
+            for name, value in zip(("delay", "width"), self.args, strict=True):
+                if not 0 <= value <= MAX_TRIGGER_US:
+                    raise ValueError(f"trigger {name} {value} us outside 0..{MAX_TRIGGER_US}")
 
 
 @dataclass(frozen=True)
@@ -339,8 +373,12 @@ def _read_seq(token: str) -> int | None:
     return None
 
 
-def decode_request(line: bytes) -> Request:
+def decode_request(line: bytes, *,
+                   commands: Collection[Command] = tuple(Command)) -> Request:
     """Decode one request line (trailing newline optional).
+
+    ``commands`` are those the board knows (default all); any other is ``CMD``, as for an
+    older board without ``TRIG``.
 
     Raises
     ------
@@ -351,6 +389,9 @@ def decode_request(line: bytes) -> Request:
     if not fields:
         raise ProtocolError(ErrorCode.BAD_FRAME, "request without a command", seq=seq)
     command = _token(Command, fields[0], ErrorCode.UNKNOWN_COMMAND, "command", seq)
+    if command not in commands:
+        raise ProtocolError(ErrorCode.UNKNOWN_COMMAND, f"unknown command {fields[0]!r}",
+                            seq=seq)
     tokens = fields[1:]
     if len(tokens) != command.arg_count:
         raise ProtocolError(
@@ -362,7 +403,7 @@ def decode_request(line: bytes) -> Request:
         if command is Command.LEDS:
             args: tuple[int, ...] = (parse_mask(tokens[0]),)
         else:
-            args = tuple(parse_uint(t, maximum=MAX_LEVEL) for t in tokens)
+            args = tuple(parse_uint(t, maximum=command.arg_maximum) for t in tokens)
         return Request(seq, command, args)
     except ProtocolError as exc:
         raise ProtocolError(exc.code, str(exc), seq=seq) from None

@@ -18,8 +18,10 @@ import serial
 from fingerps_driver.board.board_protocol import (
     MAX_LEDS,
     MAX_LEVEL,
+    MAX_TRIGGER_US,
     REPLY_SIGIL,
     Command,
+    ErrorCode,
     Reply,
     Request,
     decode_reply,
@@ -38,6 +40,7 @@ from fingerps_driver.errors import (
     BoardProtocolError,
     BoardRejectedError,
     BoardTimeoutError,
+    BoardUnsupportedError,
     ProtocolError,
 )
 
@@ -217,6 +220,28 @@ class LedBoard(Device):
         if not 0 <= index <= MAX_LEVEL:
             raise ValueError(f"LED index {index} outside 0..{MAX_LEVEL}")
         self._transact(Command.LEVEL, (index, level))
+
+    def trigger(self, delay_us: int, width_us: int) -> None:
+        """Set the camera trigger: after every ``set_leds`` the board's trigger output rises
+        ``delay_us`` after the LEDs switched and stays high ``width_us`` (each 0..65535;
+        the board may round them up to its timer's step). ``width_us`` 0 switches it off.
+
+        Raises ``BoardUnsupportedError`` if the board's firmware has no trigger (it answers
+        ``ERR,CMD``).
+        """
+        for name, value in (("delay_us", delay_us), ("width_us", width_us)):
+            if not 0 <= value <= MAX_TRIGGER_US:
+                raise ValueError(f"{name} {value} outside 0..{MAX_TRIGGER_US}")
+        try:
+            self._transact(Command.TRIG, (delay_us, width_us))
+        except BoardRejectedError as exc:
+            if exc.code is not ErrorCode.UNKNOWN_COMMAND:
+                raise
+            raise BoardUnsupportedError(
+                f"the LED board on {self._port} has no camera trigger (it answered "
+                f"TRIG with ERR,CMD: {exc}); flash the fingerps firmware "
+                f"(docs/board_firmware.md) or leave the trigger off (width 0)",
+                exc.code) from None
 
     # -- transport -------------------------------------------------------------------
 
