@@ -21,9 +21,10 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
 - cloud: ``height_to_distance`` + ``depth_to_points``.
 - lambert_total: flat_field + mask + lambertian + transform + integration_fast + cloud run
   back to back; lambert_total_perspective: the same with the perspective integration.
-- host_reference: a fixed numpy job on two burst-sized float32 stacks (product, square
-  root, sum), none of the project's code, timed just before the pipeline stages: the
-  shared host's speed at that moment, beside which the pipeline figures are read.
+- host_reference: a fixed numpy job on every core at once (a thread each: product, square
+  root and sum of two burst-sized float32 stacks), none of the project's code, timed just
+  before the pipeline stages: the shared host's speed at that moment, beside which the
+  pipeline figures are read.
 - pipeline_prepare: ``fingerps_recon.photometric.pipeline.prepare_calibration`` for the demo's
   calibration (near lights from the LED positions, white-target irradiance, perspective
   views), its caches emptied: what recon_node does once per calibration and camera.
@@ -57,6 +58,7 @@ import dataclasses
 import importlib
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -243,13 +245,22 @@ def _time(fn: Callable[[], object], repeats: int) -> tuple[object, tuple[float, 
 
 
 def _host_reference(planes: np.ndarray) -> float:
-    """A fixed job of numpy alone on one thread over two burst-sized float32 stacks
-    (``recon.ms.host_reference``): a product, a square root and a sum, as memory-bound
-    as the reconstruction's passes."""
-    a, b = planes
-    out = np.multiply(a, b)
-    np.sqrt(out, out=out)
-    return float(out.sum(dtype=np.float64))
+    """A fixed job of numpy alone (``recon.ms.host_reference``): on each of the process's
+    cores (a thread each, numpy releases the GIL) a product, a square root and a sum over
+    two burst-sized float32 stacks of its own, as memory-bound as the reconstruction's
+    passes; the time until all are done. ``planes``: (cores, 2, K, H, W)."""
+    def job(own: np.ndarray) -> float:
+        out = np.multiply(own[0], own[1])
+        np.sqrt(out, out=out)
+        return float(out.sum(dtype=np.float64))
+
+    others = [threading.Thread(target=job, args=(own,)) for own in planes[1:]]
+    for thread in others:
+        thread.start()
+    total = job(planes[0])
+    for thread in others:
+        thread.join()
+    return total
 
 
 def _uncached_prepare(prepare: Callable[[Model], object], model: Model) -> object:
@@ -391,8 +402,9 @@ def measure(repeats: int = RUNS) -> SpeedReport:
     # The host's speed at this moment, on a job of none of this project's code: a shared
     # host's speed changes by up to 2x within minutes (README), so a stage's figure is
     # read beside it.
-    reference = np.random.default_rng(1).uniform(0, 1, (2, *burst.images.shape)).astype(
-        np.float32)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
+    reference = np.random.default_rng(1).uniform(
+        0, 1, (cores, 2, *burst.images.shape)).astype(np.float32)
     stage("host_reference", lambda: _host_reference(reference))
     stage("pipeline_prepare", lambda: _uncached_prepare(prepare, Model.HK))
     prepared_for = {model: prepare(model) for model in Model}
