@@ -14,14 +14,13 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from led_history import masks_lit_since
+from led_images import led_references, leds_seen
 from rclpy.node import Node
 
 from fingerps_driver.board.board_emulator import BoardEmulatorControl, Fault
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import qos, topics
-from fingerps_ros.image_conversion import image_to_array
 
 NS = "/" + topics.NAMESPACE
 LEDS = list(range(7))
@@ -31,23 +30,13 @@ BURST_MASKS = [1 << i for i in LEDS] + [0]  # what a whole burst switches, in or
 @pytest.fixture(scope="module")
 def references() -> np.ndarray:
     """Each LED's noiseless finger image, centred and normalised: (7, H*W)."""
-    rig = SimulatedRig(RigConfig())
-    refs = np.stack([rig.noiseless(Scene.FINGER, [k]).ravel() for k in LEDS]).astype(float)
-    refs -= refs.mean(axis=1, keepdims=True)
-    return refs / np.linalg.norm(refs, axis=1, keepdims=True)
-
-
-def _led_seen(frame, references: np.ndarray) -> int:
-    """The LED whose light the frame shows (highest correlation)."""
-    image = image_to_array(frame.image).astype(float).ravel()
-    image -= image.mean()
-    return int(np.argmax(references @ image))
+    return led_references()
 
 
 def _assert_whole_and_truly_tagged(burst: Burst, references: np.ndarray) -> None:
     assert [f.led_index for f in burst.frames] == LEDS
     assert all(f.burst_id == burst.burst_id and f.led_count == 7 for f in burst.frames)
-    seen = [_led_seen(f, references) for f in burst.frames]
+    seen = leds_seen(burst.frames, references)
     assert seen == LEDS, f"burst {burst.burst_id}: tags {LEDS}, camera saw {seen}"
 
 

@@ -54,9 +54,11 @@ above 0, every acknowledged ``LEDS`` request (any mask, ``00`` included: a dark 
 makes the board's trigger output rise ``delay_us`` after the LEDs switched and stay high
 ``width_us``; the board may round both up to its timer's step (the AVR firmware: whole
 16 us PWM periods). A new ``LEDS`` restarts the pulse; ``OFF`` and the host-silence
-switch-off (below) cancel one under way. ``TRIG`` itself switches nothing and its setting
-is kept until the next ``TRIG`` or reset; at power-up and after a reset the trigger is off
-(width 0, delay 0). The ``LEDS`` reply does not wait for the pulse. Errors as for
+switch-off (below) cancel one under way, ``LEVEL`` does not. ``TRIG`` itself switches
+nothing; sent while a pulse is under way it may change that pulse (the AVR firmware takes
+the new width if the pulse has not risen yet). The setting is kept until the next ``TRIG``
+or a reset; at power-up and after a reset the trigger is off (width 0, delay 0). The
+``LEDS`` reply does not wait for the pulse. Errors as for
 ``LEVEL``: ``ARG`` for a wrong argument count or a number that is not decimal 0..65535.
 
 Host silence: a board may switch every LED off when no request line it answered has come
