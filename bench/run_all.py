@@ -49,6 +49,7 @@ import bench_driver
 import bench_driver_publish
 import bench_e2e
 import bench_fingerprint
+import bench_firmware
 import bench_hk_iterations
 import bench_many_lights
 import bench_recon_accuracy
@@ -62,7 +63,7 @@ SEPARATE_PREFIXES = ("soak.",)
 
 BENCHMARKS = (bench_driver, bench_driver_publish, bench_recon_speed, bench_recon_publish,
               bench_recon_accuracy, bench_hk_iterations, bench_many_lights, bench_calib,
-              bench_e2e, bench_fingerprint, bench_chunk_compression)
+              bench_e2e, bench_fingerprint, bench_chunk_compression, bench_firmware)
 
 AVX2_SUFFIX = ".avx2"
 
