@@ -11,6 +11,7 @@ switches) and the median render of one frame from the filled cache
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -25,26 +26,35 @@ SWITCHES = 300
 RENDERS = 35
 
 
-def run() -> dict[str, float]:
-    rig = SimulatedRig(RigConfig())
-    rng = np.random.default_rng(0)
-    with BoardEmulator(rig.led_count) as emulator, LedBoard(emulator.port) as board:
-        camera = SimulatedCamera(lambda lit: rig.render(Scene.FINGER, list(lit), rng=rng),
-                                 emulator.lit_leds, width=rig.config.width,
-                                 height=rig.config.height)
-        camera.open()
+def timed_bursts(board: LedBoard, lit_leds: Callable[[], Sequence[int]], rig: SimulatedRig,
+                 rng: np.random.Generator, bursts: int = BURSTS) -> tuple[list[float], float]:
+    """``capture_burst`` of the rig's LEDs through ``board`` with the simulated camera
+    (rendering the LEDs ``lit_leds()`` says are lit), after a warm-up that fills the render
+    cache: each burst's duration (ms) and the seconds the ``bursts`` took back to back."""
+    camera = SimulatedCamera(lambda lit: rig.render(Scene.FINGER, list(lit), rng=rng),
+                             lit_leds, width=rig.config.width, height=rig.config.height)
+    camera.open()
+    try:
         kwargs = dict(led_order=range(rig.led_count), exposures_s=0.01, levels=1.0,
                       expected_shape=(rig.config.height, rig.config.width))
         capture_burst(board, camera, burst_id=0, **kwargs)  # warm-up: fills the cache
         durations = []
         start = time.perf_counter()
-        for i in range(BURSTS):
+        for i in range(bursts):
             result = capture_burst(board, camera, burst_id=i + 1, **kwargs)
             if not result.ok:
                 raise RuntimeError(result.reason)
             durations.append(result.duration_s * 1e3)
-        elapsed = time.perf_counter() - start
+        return durations, time.perf_counter() - start
+    finally:
         camera.close()
+
+
+def run() -> dict[str, float]:
+    rig = SimulatedRig(RigConfig())
+    rng = np.random.default_rng(0)
+    with BoardEmulator(rig.led_count) as emulator, LedBoard(emulator.port) as board:
+        durations, elapsed = timed_bursts(board, emulator.lit_leds, rig, rng)
         switches = []
         for i in range(SWITCHES):
             t0 = time.perf_counter()

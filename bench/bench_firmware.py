@@ -34,11 +34,11 @@ import numpy as np
 
 from fingerps_driver.board.firmware_sim import FirmwareSim, find_firmware
 from fingerps_driver.board.led_board import LedBoard
-from fingerps_driver.cameras.camera import SimulatedCamera
-from fingerps_driver.capture.burst import capture_burst
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import RigConfig, SimulatedRig
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from bench_driver import timed_bursts
 from board_trace import Trace, stopped_trace  # the tests' reader of the trace
 
 REQUESTS = 40
@@ -110,27 +110,11 @@ def run() -> dict[str, float]:
         figures["firmware.trigger_width_us"] = float(np.median(widths)) / 1e3
         # Bursts through the firmware with the simulated camera.
         rig = SimulatedRig(RigConfig())
-        rng = np.random.default_rng(0)
         with FirmwareSim(str(Path(tmp) / "board")) as sim, LedBoard(sim.port) as board:
-            camera = SimulatedCamera(
-                lambda lit: rig.render(Scene.FINGER, list(lit), rng=rng),
-                lambda: [k for k in range(rig.led_count)
-                         if (board.acknowledged_mask or 0) >> k & 1],
-                width=rig.config.width,
-                height=rig.config.height)
-            camera.open()
-            kwargs = dict(led_order=range(rig.led_count), exposures_s=0.01, levels=1.0,
-                          expected_shape=(rig.config.height, rig.config.width))
-            capture_burst(board, camera, burst_id=0, **kwargs)  # warm-up: the render cache
-            durations = []
-            start = time.perf_counter()
-            for i in range(BURSTS):
-                result = capture_burst(board, camera, burst_id=i + 1, **kwargs)
-                if not result.ok:
-                    raise RuntimeError(result.reason)
-                durations.append(result.duration_s * 1e3)
-            elapsed = time.perf_counter() - start
-            camera.close()
+            durations, elapsed = timed_bursts(
+                board, lambda: [k for k in range(rig.led_count)
+                                if (board.acknowledged_mask or 0) >> k & 1],
+                rig, np.random.default_rng(0), BURSTS)
         figures["firmware.bursts_per_s"] = BURSTS / elapsed
         figures["firmware.burst_ms.median"] = float(np.median(durations))
     size = subprocess.run(["avr-size", "--format=avr", "--mcu=atmega328p",
