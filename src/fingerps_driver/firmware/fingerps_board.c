@@ -309,13 +309,14 @@ static void reply_char(char c)
     uart_put((uint8_t)c);
 }
 
-static void reply_str_P(const char *s)
+/* A flash string, and a decimal number, into a sink (the reply or the error message). */
+static void put_str_P(void (*put)(char), const char *s)
 {
     for (char c; (c = (char)pgm_read_byte(s)) != '\0'; ++s)
-        reply_char(c);
+        put(c);
 }
 
-static void reply_uint(uint32_t value)
+static void put_uint(void (*put)(char), uint32_t value)
 {
     char digits[10];
     uint8_t n = 0;
@@ -324,8 +325,11 @@ static void reply_uint(uint32_t value)
         value /= 10u;
     } while (value);
     while (n)
-        reply_char(digits[--n]);
+        put(digits[--n]);
 }
+
+static void reply_str_P(const char *s) { put_str_P(reply_char, s); }
+static void reply_uint(uint32_t value) { put_uint(reply_char, value); }
 
 static const char hex_digits[] PROGMEM = "0123456789ABCDEF";
 
@@ -372,23 +376,8 @@ static void msg_char(char c)
     msg[msg_len++] = c;
 }
 
-static void msg_str_P(const char *s)
-{
-    for (char c; (c = (char)pgm_read_byte(s)) != '\0'; ++s)
-        msg_char(c);
-}
-
-static void msg_uint(uint32_t value)
-{
-    char digits[10];
-    uint8_t n = 0;
-    do {
-        digits[n++] = (char)('0' + value % 10u);
-        value /= 10u;
-    } while (value);
-    while (n)
-        msg_char(digits[--n]);
-}
+static void msg_str_P(const char *s) { put_str_P(msg_char, s); }
+static void msg_uint(uint32_t value) { put_uint(msg_char, value); }
 
 static void msg_mask(uint32_t mask)
 {
