@@ -403,6 +403,23 @@ def test_integer_images_are_read_as_they_are() -> None:
         assert res.misfit_sq == ref.misfit_sq and res.observed_sum == ref.observed_sum
 
 
+def test_integer_thresholds_split_the_values_as_real_numbers() -> None:
+    # Integer images are compared with float32 levels (the kernel's lanes): a fractional,
+    # integral, negative or out-of-range level splits the values as the real number does.
+    normals, mask = _sphere(31)
+    for dtype, scale in ((np.uint8, 250.0), (np.uint16, 65000.0)):
+        images = np.round(_render(normals, scale, LIGHTS)).astype(dtype)
+        exact = images[:, mask].astype(np.float64)
+        top = float(np.iinfo(dtype).max)
+        for lo, hi in ((3.5, scale - 0.5), (3.0, scale - 1.0), (-7.2, 1e12), (-np.inf, np.inf),
+                       (top + 5.0, np.inf), (20.0, -3.0), (20.0, top)):
+            res = solve_lambertian(images, LIGHTS, mask=mask, shadow_level=lo,
+                                   saturation_level=hi)
+            expected = ((exact > lo) & (exact < hi)).sum(axis=0)
+            np.testing.assert_array_equal(res.used_lights[mask], expected,
+                                          err_msg=f"{dtype.__name__} {lo} {hi}")
+
+
 def test_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
 
     normals, mask, lights, irradiance = _near_lights()

@@ -34,6 +34,8 @@ from fingerps_recon.photometric.mask_box import mask_bounding_box
 _MIN_RELATIVE_DETERMINANT = 1e-5
 # Image dtypes the kernel reads directly (others are converted, see solve_lambertian).
 _NATIVE_IMAGES = (np.uint8, np.uint16, np.float32, np.float64)
+# Integer images reach the kernel as uint8 or uint16: values below this, exact in float32.
+_INTEGER_LIMIT = 65536.0
 
 
 def lambertian_shading(
@@ -309,15 +311,20 @@ def _levels(
     dtype: np.dtype, shadow_level: float, saturation_level: float | None
 ) -> tuple[np.floating, np.floating]:
     """The shadow and saturation levels as the kernel compares them with values of ``dtype``,
-    exactly as real numbers: float32 thresholds for float32 values (moved to the float32 that
-    splits the values the same way), float64 for the others (exact for the integers); no
-    saturation level is +inf (which also leaves out infinite values)."""
+    exactly as real numbers, as float32 (the kernel's loops then compare in float32 lanes):
+    for float32 values the float32 that splits them the same way; for the integer values
+    (uint8, uint16) the integer that does (v > lo iff v > floor(lo), v < hi iff
+    v < ceil(hi)), held within [-1, 65536], where float32 is exact; float64 for float64
+    values. No saturation level is +inf (which also leaves out infinite values)."""
     if dtype == np.float32:
         lo = _float32_threshold(shadow_level, above=True)
         hi = (np.float32(np.inf) if saturation_level is None
               else _float32_threshold(saturation_level, above=False))
         return lo, hi
     hi = np.inf if saturation_level is None else saturation_level
+    if dtype.kind in "ui":
+        return (np.float32(np.clip(np.floor(shadow_level), -1.0, _INTEGER_LIMIT)),
+                np.float32(np.clip(np.ceil(hi), -1.0, _INTEGER_LIMIT)))
     return np.float64(shadow_level), np.float64(hi)
 
 

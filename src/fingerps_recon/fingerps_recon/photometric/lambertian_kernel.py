@@ -239,8 +239,8 @@ def solve(images, rows, mask, box, lo, hi, min_det, normals, albedo, valid, used
         The pixels to solve.
     box : (4,) int64
         The rectangle: rows box[0] ... box[1] - 1, columns box[2] ... box[3] - 1.
-    lo, hi : scalars of the images' comparison type (float32 for float32 images, else
-        float64): shadow and saturation levels.
+    lo, hi : float32 (uint8, uint16 or float32 images) or float64 (float64 images)
+        Shadow and saturation levels, as :func:`photometric.lambertian._levels` makes them.
     min_det : float32
         Relative determinant below which A is degenerate.
     normals : (H, W, 3) float32, albedo : (H, W) float32, valid : (H, W) bool,
