@@ -261,11 +261,13 @@ def _gather_chunk(chunk, cand, index, images, usable, normals, albedo, terms, vi
             src_u = usable[k]
             energy = block[E]
             value = block[VALUE]
-            for i in range(s0, s1):
+            for i in range(s0, s1):  # one array written a loop (see above)
                 v = np.float32(src_v[_U(p0 + i)])
                 u = src_u[_U(p0 + i)] & (v - v == zero) & (energy[_U(i)] > zero)
                 taken[_U(i)] = one if u else zero
-                value[_U(i)] = v if u else zero
+            for i in range(s0, s1):
+                v = np.float32(src_v[_U(p0 + i)])
+                value[_U(i)] = v if taken[_U(i)] > zero else zero
         for row in (G, E):
             dst = block[row]
             for i in range(m):
