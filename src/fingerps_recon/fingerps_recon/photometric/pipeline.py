@@ -32,6 +32,7 @@ from typing import TypeVar
 import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError, NoFingerError
+from fingerps_recon.heap_retention import retain_freed_memory
 from fingerps_recon.photometric.finger_mask import finger_mask
 from fingerps_recon.photometric.flat_field import flat_field_gain
 from fingerps_recon.photometric.hk_solver import HKLighting, prepare_hk_lighting, solve_hk_prepared
@@ -58,6 +59,10 @@ _T = TypeVar("_T")
 # The thread the ridge enhancement runs on beside the integration (serial kernels only:
 # numba's parallel kernels are launched from one thread at a time).
 _SIDE_THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fingerps_enhance")
+
+# Every burst allocates and frees the same arrays: freed memory stays in the process, so the
+# next burst finds it without page faults (heap_retention).
+retain_freed_memory()
 
 
 class Model(Enum):
