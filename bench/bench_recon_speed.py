@@ -8,6 +8,11 @@ against the simulated rig's true depth. ``run()`` returns the medians as
 ``recon.ms.hk_total`` when ``photometric.hk_solver.solve_hk`` exists) and the accuracy
 figures as ``recon.um.<name>``.
 
+Every stage is run back to back after one warm-up run, but for host_reference,
+pipeline_lambert, pipeline_hk and the two hk_kernel stages: their runs are taken in turn,
+in ``SPREAD_BLOCKS`` blocks ``SPREAD_GAP_S`` s apart (each block warmed up by one untimed
+run), so that their medians do not hang on the host's speed during one second.
+
 Stages, in the order of the Lambertian path (burst -> point cloud), all on the standard
 simulated rig (``fingerps_driver.simulation``), with the white-target flat field:
 
@@ -22,9 +27,9 @@ simulated rig (``fingerps_driver.simulation``), with the white-target flat field
 - lambert_total: flat_field + mask + lambertian + transform + integration_fast + cloud run
   back to back; lambert_total_perspective: the same with the perspective integration.
 - host_reference: a fixed numpy job on every core at once (a thread each: product, square
-  root and sum of two burst-sized float32 stacks), none of the project's code, timed just
-  before the pipeline stages: the shared host's speed at that moment, beside which the
-  pipeline figures are read.
+  root and sum of two burst-sized float32 stacks), none of the project's code, timed in
+  the same rounds as pipeline_lambert and pipeline_hk: the shared host's speed at those
+  moments, beside which the pipeline figures are read.
 - pipeline_prepare: ``fingerps_recon.photometric.pipeline.prepare_calibration`` for the demo's
   calibration (near lights from the LED positions, white-target irradiance, perspective
   views), its caches emptied: what recon_node does once per calibration and camera.
@@ -102,6 +107,9 @@ WORKING_DISTANCE_M = 0.09
 SHADOW_FRACTION = 0.02
 MASK_THRESHOLD = 0.15
 HK_ITERATIONS = 10
+# The per-burst figures' runs are taken in blocks this far apart (_time_spread).
+SPREAD_BLOCKS = 5
+SPREAD_GAP_S = 4.0
 
 
 @dataclass(frozen=True)
@@ -244,6 +252,31 @@ def _time(fn: Callable[[], object], repeats: int) -> tuple[object, tuple[float, 
     return result, tuple(times)
 
 
+def _time_spread(stages: Mapping[str, Callable[[], object]], repeats: int,
+                 blocks: int = SPREAD_BLOCKS, gap_s: float = SPREAD_GAP_S
+                 ) -> dict[str, tuple[object, tuple[float, ...]]]:
+    """``repeats`` timed runs of each of ``stages``, taken in ``blocks`` blocks ``gap_s``
+    apart: in each block one untimed run of every stage (warm caches, as back to back),
+    then rounds of one timed run of each, in turn. A shared host's speed changes within
+    minutes (README, Real time), so the samples of the per-burst figures come from several
+    moments instead of one second, and stages timed in the same rounds saw the same host
+    (``host_reference`` beside the pipeline; the 0- and 10-iteration kernel runs whose
+    difference is one iteration's cost)."""
+    results: dict[str, object] = {}
+    times: dict[str, list[float]] = {name: [] for name in stages}
+    for block in range(blocks):
+        if block:
+            time.sleep(gap_s)
+        for name, fn in stages.items():
+            results[name] = fn()
+        for _ in range(repeats // blocks + (block < repeats % blocks)):
+            for name, fn in stages.items():
+                start = time.perf_counter()
+                results[name] = fn()
+                times[name].append((time.perf_counter() - start) * 1e3)
+    return {name: (results[name], tuple(times[name])) for name in stages}
+
+
 def _host_reference(planes: np.ndarray) -> float:
     """A fixed job of numpy alone (``recon.ms.host_reference``): on each of the process's
     cores (a thread each, numpy releases the GIL) a product, a square root and a sum over
@@ -298,6 +331,11 @@ def measure(repeats: int = RUNS) -> SpeedReport:
         result, times = _time(fn, repeats)
         timings.append(StageTiming(name, times))
         return result
+
+    def spread(stages: Mapping[str, Callable[[], object]]) -> dict[str, object]:
+        measured = _time_spread(stages, repeats)
+        timings.extend(StageTiming(name, times) for name, (_, times) in measured.items())
+        return {name: result for name, (result, _) in measured.items()}
 
     stack = stage("flat_field", lambda: apply_flat_field(burst.images, burst.portions))
     saturation_level = float(stack.max()) + 1.0  # as the pipeline: nothing saturated here
@@ -405,11 +443,11 @@ def measure(repeats: int = RUNS) -> SpeedReport:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
     reference = np.random.default_rng(1).uniform(
         0, 1, (cores, 2, *burst.images.shape)).astype(np.float32)
-    stage("host_reference", lambda: _host_reference(reference))
     stage("pipeline_prepare", lambda: _uncached_prepare(prepare, Model.HK))
     prepared_for = {model: prepare(model) for model in Model}
-    stage("pipeline_lambert", lambda: pipeline(Model.LAMBERT))
-    stage("pipeline_hk", lambda: pipeline(Model.HK))
+    spread({"host_reference": lambda: _host_reference(reference),
+            "pipeline_lambert": lambda: pipeline(Model.LAMBERT),
+            "pipeline_hk": lambda: pipeline(Model.HK)})
 
     # The HK kernel's rate: solve_hk with the pipeline's near-light inputs and A held at
     # its fit (as every burst after the first), 0 and KERNEL_ITERATIONS iterations (tol 0:
@@ -432,9 +470,11 @@ def measure(repeats: int = RUNS) -> SpeedReport:
 
         held = hk_iterations(KERNEL_ITERATIONS).scale
 
-        stage("hk_kernel_0_iterations", lambda: hk_iterations(0, held))
-        solved = stage(f"hk_kernel_{KERNEL_ITERATIONS}_iterations",
-                       lambda: hk_iterations(KERNEL_ITERATIONS, held))
+        solved = spread({
+            "hk_kernel_0_iterations": lambda: hk_iterations(0, held),
+            f"hk_kernel_{KERNEL_ITERATIONS}_iterations":
+                lambda: hk_iterations(KERNEL_ITERATIONS, held),
+        })[f"hk_kernel_{KERNEL_ITERATIONS}_iterations"]
         kernel_pixels = int(solved.valid.sum())
 
     if solve_hk is not None:
