@@ -425,7 +425,7 @@ def measure(repeats: int = RUNS) -> SpeedReport:
     def prepare(model: Model) -> object:
         return _node_calibration(rig, burst, ReconstructionOptions(model=model, enhance=True))
 
-    # As recon_node: A held at the previous burst's refit (burst_reconstruction.
+    # As recon_node: A held at the previous burst's refit (calibration_in_force.
     # PreparedCalibrations.hk_scale), here the A of a first, cold burst.
     last_scale: dict[Model, float | None] = {model: None for model in Model}
 

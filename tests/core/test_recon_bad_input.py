@@ -1,5 +1,5 @@
 """Bad Burst, LightCalibration and FlatField messages through recon_node's core functions
-(``burst_reconstruction.reconstruct_burst``, ``PreparedCalibrations``,
+(``burst_reconstruction.reconstruct_burst``, ``CalibrationInForce``,
 ``burst_intake.check_burst_size``, ``check_light_calibration``, ``flat_field_maps``), without
 a ROS graph; and the node's worker, in this process, going on after an error nobody expected.
 
@@ -7,7 +7,7 @@ Every bad message must end in a ``FingerpsError`` (``FingerpsReconError``, ``Mes
 that says what is wrong - never in
 another exception (which killed recon_node's worker thread), never in an "empty" result
 counted as a reconstruction - and a good burst must still reconstruct afterwards with the
-same ``PreparedCalibrations``.
+same ``CalibrationInForce`` (and its prepared calibrations).
 """
 
 from __future__ import annotations
@@ -38,10 +38,8 @@ from fingerps_recon.reconstruction.burst_intake import (
     check_light_calibration,
     flat_field_maps,
 )
-from fingerps_recon.reconstruction.burst_reconstruction import (
-    PreparedCalibrations,
-    reconstruct_burst,
-)
+from fingerps_recon.reconstruction.burst_reconstruction import reconstruct_burst
+from fingerps_recon.reconstruction.calibration_in_force import CalibrationInForce
 from fingerps_recon.reconstruction.problem_log import LogGate, one_line
 from fingerps_ros.errors import FingerpsError
 from fingerps_ros.image_conversion import array_to_image, images_to_array
@@ -85,20 +83,28 @@ def burst(rig: SimulatedRig, images: np.ndarray, *, leds: list[int] | None = Non
     return msg
 
 
-def reconstructs(rig: SimulatedRig, images: np.ndarray, prepared: PreparedCalibrations,
+def in_force(lights: LightCalibration, flat: np.ndarray | None = None,
+             shared: CalibrationInForce | None = None) -> CalibrationInForce:
+    """``shared`` (or a new one) with these lights and flat-field maps in force as they are,
+    unchecked (as if they had got past the checks on arrival)."""
+    held = shared or CalibrationInForce()
+    held.lights, held.flat_maps = lights, flat
+    return held
+
+
+def reconstructs(rig: SimulatedRig, images: np.ndarray, shared: CalibrationInForce,
                  flat: np.ndarray | None = None) -> None:
-    """A good burst still reconstructs, with the calibration cache that saw the bad ones."""
-    made = reconstruct_burst(burst(rig, images), calibration(rig), flat, options=OPTIONS,
-                             prepared=prepared)
+    """A good burst still reconstructs, with the calibration in force that saw the bad ones."""
+    made = reconstruct_burst(burst(rig, images), in_force(calibration(rig), flat, shared),
+                             options=OPTIONS)
     assert made.result.mask.sum() > 100_000 and len(made.result.points_optical) > 100_000
 
 
 def refused(msg: Burst, lights: LightCalibration, *, match: str,
-            flat: np.ndarray | None = None, prepared: PreparedCalibrations | None = None,
+            flat: np.ndarray | None = None, shared: CalibrationInForce | None = None,
             limits: BurstLimits | None = None, error: type = FingerpsError) -> str:
     with pytest.raises(error, match=match) as info:
-        reconstruct_burst(msg, lights, flat, options=OPTIONS, prepared=prepared,
-                          limits=limits)
+        reconstruct_burst(msg, in_force(lights, flat, shared), options=OPTIONS, limits=limits)
     return str(info.value)
 
 
@@ -106,13 +112,13 @@ def refused(msg: Burst, lights: LightCalibration, *, match: str,
 @pytest.mark.parametrize("shape", [(0, 0), (0, 16), (16, 0)])
 def test_empty_images_are_refused(rig: SimulatedRig, finger_images: np.ndarray,
                                   shape: tuple[int, int]) -> None:
-    prepared = PreparedCalibrations()
+    shared = CalibrationInForce()
     empty = np.zeros((rig.led_count, *shape), dtype=np.uint8)
     msg = burst(rig, empty)
     with pytest.raises(FingerpsError, match="empty"):
         check_burst_size(msg, BurstLimits())
-    refused(msg, calibration(rig), match="empty", prepared=prepared)
-    reconstructs(rig, finger_images, prepared)
+    refused(msg, calibration(rig), match="empty", shared=shared)
+    reconstructs(rig, finger_images, shared)
 
 
 def test_images_beyond_the_bounds_are_refused_before_they_are_read(
@@ -169,9 +175,9 @@ def test_step_and_data_that_disagree_are_refused(rig: SimulatedRig, finger_image
         image.step = image.width - 1
     else:
         image.step = image.width + 1
-    prepared = PreparedCalibrations()
-    refused(msg, calibration(rig), match="too few", prepared=prepared)
-    reconstructs(rig, finger_images, prepared)
+    shared = CalibrationInForce()
+    refused(msg, calibration(rig), match="too few", shared=shared)
+    reconstructs(rig, finger_images, shared)
 
 
 @pytest.mark.parametrize("leds", [[0, 1, 2, 3, 4, 5, 5], [0, 1, 2, 3, 4, 5, 99],
@@ -194,13 +200,13 @@ def test_a_dark_frame_of_another_encoding_or_with_nan_is_refused(
     dark = np.zeros(finger_images.shape[1:], dtype=np.float32)
     dark[100:200, 100:200] = NAN
     nan_dark = array_to_image(dark, encoding="32FC1")
-    prepared = PreparedCalibrations()
+    shared = CalibrationInForce()
     refused(burst(rig, finger_images, dark=nan_dark), calibration(rig), match="dark frame",
-            prepared=prepared)
+            shared=shared)
     small = array_to_image(np.zeros((10, 10), np.uint8), encoding="mono8")
     refused(burst(rig, finger_images, dark=small), calibration(rig), match="dark frame",
-            prepared=prepared)
-    reconstructs(rig, finger_images, prepared)
+            shared=shared)
+    reconstructs(rig, finger_images, shared)
 
 
 @pytest.mark.parametrize("k", [np.full((3, 3), NAN), np.diag([math.inf, 1.0, 1.0]),
@@ -262,11 +268,11 @@ def test_degenerate_light_calibrations_are_refused(rig: SimulatedRig, finger_ima
     lights = _degenerate(rig)[case]
     with pytest.raises(FingerpsError):
         check_light_calibration(lights)
-    prepared = PreparedCalibrations()
+    shared = CalibrationInForce()
     with pytest.raises(FingerpsError):
-        reconstruct_burst(burst(rig, finger_images), lights, None, options=OPTIONS,
-                          prepared=prepared)
-    reconstructs(rig, finger_images, prepared)
+        reconstruct_burst(burst(rig, finger_images), in_force(lights, None, shared),
+                          options=OPTIONS)
+    reconstructs(rig, finger_images, shared)
 
 
 def test_leds_that_cannot_light_the_finger_are_refused_where_used(
@@ -282,7 +288,7 @@ def test_leds_that_cannot_light_the_finger_are_refused_where_used(
 def test_the_good_calibrations_pass(rig: SimulatedRig, finger_images: np.ndarray) -> None:
     check_light_calibration(calibration(rig))
     check_light_calibration(calibration(rig, leds=rig.led_positions_optical))
-    reconstructs(rig, finger_images, PreparedCalibrations())
+    reconstructs(rig, finger_images, CalibrationInForce())
 
 
 # ------------------------------------------------------------------ flat fields
@@ -324,15 +330,15 @@ def test_a_good_flat_field_is_taken(rig: SimulatedRig) -> None:
 
 def test_nan_flat_maps_are_refused_where_used_too(rig: SimulatedRig,
                                                   finger_images: np.ndarray) -> None:
-    # Maps that never went through flat_field_maps (scan_node, an old recon): refused by the
+    # Maps put in force without flat_field_maps (unchecked on arrival): refused by the
     # preparation, with the near lights (which do not divide by them) as with distant ones.
     maps = np.ones(finger_images.shape, dtype=np.float32)
     maps[:, 200:300, 300:400] = NAN
-    prepared = PreparedCalibrations()
+    shared = CalibrationInForce()
     for lights in (calibration(rig), calibration(rig, leds=rig.led_positions_optical)):
         refused(burst(rig, finger_images), lights, flat=maps, match="non-finite|NaN",
-                prepared=prepared)
-    reconstructs(rig, finger_images, prepared, flat=np.ones(finger_images.shape, np.float32))
+                shared=shared)
+    reconstructs(rig, finger_images, shared, flat=np.ones(finger_images.shape, np.float32))
 
 
 # ------------------------------------------------------------------ what the node logs

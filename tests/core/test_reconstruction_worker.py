@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterable
 from types import SimpleNamespace
 from typing import Any
 
@@ -30,15 +31,19 @@ from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
 from fingerps_recon.reconstruction import worker as worker_module
 from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.diagnostics import reconstruction_status
+from fingerps_recon.reconstruction.outputs import Output
 from fingerps_recon.reconstruction.worker import (
     ReconSettings,
     ReconstructionWorker,
     StageTimes,
 )
 from fingerps_recon.surface.rolled_print import PrintRejection
+from fingerps_ros import topics
 from fingerps_ros.image_conversion import array_to_image
 
-SETTINGS = ReconSettings(ReconstructionOptions(model=Model.LAMBERT), BurstLimits(), 4095.0)
+# Nobody watches the outputs (the stand-in reconstructions have none); the print is made.
+SETTINGS = ReconSettings(ReconstructionOptions(model=Model.LAMBERT), BurstLimits(), 4095.0,
+                         wanted=(), fingerprint=True)
 DIAGNOSTIC_KEYS = [
     "ready", "threads", "cores", "bursts_done", "bursts_failed", "bursts_incomplete",
     "bursts_rejected", "unexpected_errors", "calibrations_refused",
@@ -67,15 +72,17 @@ class RecordingLogger:
 
 
 class Published:
-    """The worker's ``publish``: records (made, burst); returns ``printed``."""
+    """The worker's ``publish``: records the outputs of each call."""
 
     def __init__(self) -> None:
-        self.calls: list[tuple[Any, Burst]] = []
-        self.printed = True
+        self.calls: list[list[Output]] = []
 
-    def __call__(self, made: Any, burst: Burst) -> bool:
-        self.calls.append((made, burst))
-        return self.printed
+    def __call__(self, outputs: Iterable[Output]) -> None:
+        self.calls.append(list(outputs))
+
+    def burst_ids(self) -> list[int]:
+        """The bursts of the prints published, in order (``a_burst`` stamps them)."""
+        return [o.message.header.stamp.nanosec for call in self.calls for o in call]
 
 
 def make_worker(*, settings: ReconSettings = SETTINGS, queue_depth: int = 2,
@@ -99,7 +106,7 @@ def a_burst(burst_id: int, *, image: Image | None = None) -> Burst:
     """A burst message; its content does not matter where the reconstruction is a stand-in
     (an empty one passes the size check)."""
     msg = Burst(burst_id=burst_id)
-    msg.header.stamp.sec = 1000
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1000, burst_id
     if image is not None:
         msg.frames = [TaggedFrame(burst_id=burst_id, led_index=0, image=image)]
     return msg
@@ -111,7 +118,8 @@ def made(*, flat_field_used: bool = True, print_error: str = "") -> SimpleNamesp
         if print_error:
             raise RolledPrintError(PrintRejection.TOO_SMALL, print_error)
         return SimpleNamespace(image=np.zeros((4, 4), np.uint8))
-    result = SimpleNamespace(mask=np.ones((5, 6), bool),
+    result = SimpleNamespace(mask=np.ones((5, 6), bool), depth_m=np.ones((5, 6), np.float32),
+                             albedo=np.ones((5, 6), np.float32),
                              timings_ms={"mask": 1.0, "normals": 30.0, "total": 40.0})
     return SimpleNamespace(result=result, images=np.zeros((7, 5, 6)),
                            flat_field_used=flat_field_used, fingerprint=fingerprint)
@@ -135,16 +143,16 @@ def reconstructs_as(monkeypatch: pytest.MonkeyPatch, outcome: Any) -> list[Burst
 def test_a_refused_light_calibration_leaves_the_previous_one_and_warns_until_replaced() -> None:
     worker, log, _ = make_worker()
     worker.on_lights(lights(np.zeros((7, 3))))
-    assert worker.lights is None and worker.calibrations_refused == 1
+    assert worker.calibration.lights is None and worker.calibration.refused_count == 1
     assert log.said("error", "light calibration refused: ")[0].endswith("; none is in force")
     level, message = worker.health()
     assert level == DiagnosticStatus.WARN and message.startswith("light calibration refused")
     good = lights()
     worker.on_lights(good)
-    assert worker.lights is good and worker.health()[0] == DiagnosticStatus.OK
+    assert worker.calibration.lights is good and worker.health()[0] == DiagnosticStatus.OK
     assert log.said("info", "light calibration received: 7 LEDs")
     worker.on_lights(lights(np.zeros((7, 3))))
-    assert worker.lights is good and worker.calibrations_refused == 2
+    assert worker.calibration.lights is good and worker.calibration.refused_count == 2
     assert log.said("error", "refused")[-1].endswith("; the previous one stays in force")
 
 
@@ -154,7 +162,7 @@ def test_flat_fields_are_taken_or_refused_on_arrival() -> None:
     worker.on_flat(FlatField(maps=maps))
     assert log.said("info", "flat field received: 7 maps (20, 30)")
     worker.on_flat(FlatField(maps=[]))
-    assert worker.calibrations_refused == 1
+    assert worker.calibration.refused_count == 1
     assert log.said("error", "flat field refused: 0 flat-field maps")[0].endswith(
         "the previous one stays in force")
     assert worker.health() == (DiagnosticStatus.WARN, worker.last_problem)
@@ -168,7 +176,10 @@ def test_a_burst_is_published_counted_timed_and_logged(monkeypatch: pytest.Monke
     reconstructs_as(monkeypatch, product)
     arrival = time.time_ns()
     worker.process(a_burst(3), arrival)
-    assert [(m, b.burst_id) for m, b in published.calls] == [(product, 3)]
+    [[printed]] = published.calls  # the print the worker made, its only output asked for
+    assert printed.topic == topics.FINGERPRINT and printed.encoding == "mono8"
+    assert printed.message.header.frame_id == topics.FINGERPRINT_FRAME
+    assert printed.message.header.stamp.sec == 1000 and worker.prints_made == 1
     assert (worker.done, worker.failed, worker.last_error) == (1, 0, "")
     assert worker.health() == (DiagnosticStatus.OK,
                                "warming up: compiling or loading the solver kernels")
@@ -241,9 +252,9 @@ def test_a_print_not_made_is_counted_and_degrades_the_burst(
     assert worker.last_print_problem == ("burst 2: no fingerprint: too little of the finger")
     assert log.said("warning", "no fingerprint")
     worker.on_lights(lights())
-    reconstructs_as(monkeypatch, good)
-    published.printed = False  # the publisher could not make the print
+    reconstructs_as(monkeypatch, bad)
     worker.process(a_burst(3), time.time_ns())
+    assert published.calls == [[]]  # published without the print
     assert worker.done == 1 and worker.health()[0] == DiagnosticStatus.WARN
 
 
@@ -272,7 +283,7 @@ def test_the_queue_drops_the_oldest_and_the_worker_runs_the_rest(
     worker.stop()
     thread.join(timeout=10.0)
     assert not thread.is_alive()
-    assert [b.burst_id for _, b in published.calls] == [2, 3]
+    assert published.burst_ids() == [2, 3]
     assert worker.ready and log.said("info", "reconstruction ready: nothing to compile")
 
 
@@ -289,11 +300,12 @@ def test_the_next_burst_is_reconstructed_while_the_last_one_is_published(
     release = threading.Event()
     publishing: list[str] = []
 
-    def held_publish(made_burst: Any, burst: Burst) -> bool:
+    def held_publish(outputs: Iterable[Output]) -> None:
         publishing.append(threading.current_thread().name)
-        if burst.burst_id == 1:
+        outputs = list(outputs)
+        if outputs[0].message.header.stamp.nanosec == 1:
             release.wait(timeout=10.0)
-        return published(made_burst, burst)
+        published(outputs)
 
     worker._publish = held_publish
     for burst_id in (1, 2, 3, 4):
@@ -310,7 +322,7 @@ def test_the_next_burst_is_reconstructed_while_the_last_one_is_published(
     worker.stop()
     thread.join(timeout=10.0)
     assert not thread.is_alive()
-    assert [b.burst_id for _, b in published.calls] == [1, 2, 3, 4]
+    assert published.burst_ids() == [1, 2, 3, 4]
     assert set(publishing) == {"recon_output"}
 
 
@@ -336,12 +348,12 @@ def test_the_calibration_is_prepared_ahead_for_the_camera_seen() -> None:
     worker.on_camera_info(camera)
     worker.prepare_ahead()
     worker.prepare_ahead()  # the same inputs: kept
-    assert worker.prepared.count == 1
+    assert worker.calibration.prepared.count == 1
     assert log.said("info", f"calibration prepared for the {width}x{height} camera in ")[0] \
         .endswith(" ms (no flat field)")
     worker.on_camera_info(CameraInfo(width=5000, height=10, k=camera.k))
     worker.prepare_ahead()  # beyond the bounds: its bursts will say so
-    assert worker.prepared.count == 1
+    assert worker.calibration.prepared.count == 1
 
 
 # ------------------------------------------------------------------ /diagnostics

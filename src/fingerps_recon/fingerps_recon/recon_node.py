@@ -6,7 +6,7 @@ callback only enqueues; a worker thread reconstructs, so a slow reconstruction n
 intake. The queue is bounded and drops the oldest burst, and the drops are counted. The
 worker first warms the compiled kernels (``/diagnostics`` says ``ready`` once it has), and
 prepares the calibration for the bursts' camera once, when the calibration, the
-camera_info or the image size changes (``burst_reconstruction.PreparedCalibrations``).
+camera_info or the image size changes (``calibration_in_force.CalibrationInForce``).
 
 Every message is survived: a burst beyond the size bounds (``max_image_width``,
 ``max_image_height``, ``max_burst_frames``) is refused on arrival, before it is queued; a
@@ -25,22 +25,17 @@ their QoS, the outputs' messages (``reconstruction.outputs``) and ``/diagnostics
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterable
 from dataclasses import replace
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon.errors import FingerpsReconError
-from fingerps_recon.reconstruction.burst_reconstruction import BurstReconstruction
 from fingerps_recon.reconstruction.diagnostics import reconstruction_status
-from fingerps_recon.reconstruction.outputs import (
-    OUTPUT_TOPICS,
-    fingerprint_message,
-    output_messages,
-)
+from fingerps_recon.reconstruction.outputs import OUTPUT_TOPICS, Output
 from fingerps_recon.reconstruction.parameters import PARAMETERS, follow_threads, read_settings
 from fingerps_recon.reconstruction.worker import ReconSettings, ReconstructionWorker
 from fingerps_ros import qos, topics
@@ -98,35 +93,26 @@ class ReconNode(Node):
                 or (topic in self._compressed and self._compressed[topic].watched)]
 
     def _settings(self) -> ReconSettings:
-        """The parameters as they are now; the ridge enhancement (Eq. 12, for the normal map
-        only) is skipped while nobody subscribes to the normal map."""
-        settings = read_settings(self)
-        if settings.options.enhance and topics.NORMAL_MAP not in self._wanted():
+        """The parameters as they are now, and the outputs someone watches; the ridge
+        enhancement (Eq. 12, for the normal map only) is skipped while nobody subscribes to
+        the normal map."""
+        wanted = tuple(self._wanted())
+        settings = replace(read_settings(self), wanted=wanted)
+        if settings.options.enhance and topics.NORMAL_MAP not in wanted:
             settings = replace(settings, options=replace(settings.options, enhance=False))
         return settings
 
-    def _publish(self, made: BurstReconstruction, burst: Burst) -> bool:
-        """Publish what a burst made: the outputs someone subscribes to (raw or compressed),
-        the print if asked for (False when it could not be made), then the compressed
+    def _publish(self, outputs: Iterable[Output]) -> None:
+        """Publish a burst's outputs as the worker builds them (raw), then their compressed
         companions."""
-        header, publishers = burst.header, self._publishers_by_topic
-        companions: dict[str, tuple[np.ndarray, str]] = {}
-        for output in output_messages(made.result, header, self._wanted()):
-            publishers[output.topic].publish(output.message)
+        companions: list[Output] = []
+        for output in outputs:
+            self._publishers_by_topic[output.topic].publish(output.message)
             if output.topic in self._compressed:
-                companions[output.topic] = (output.array, output.encoding)
-        printed = True
-        if self.get_parameter("fingerprint").value:
-            made_print = self._recon.fingerprint(made, burst)
-            printed = made_print is not None
-            if made_print is not None:
-                msg = fingerprint_message(made_print.image, header.stamp)
-                publishers[topics.FINGERPRINT].publish(msg)
-                self._compressed[topics.FINGERPRINT].publish(made_print.image, "mono8",
-                                                             msg.header)
-        for topic, (array, encoding) in companions.items():  # after the raw ones
-            self._compressed[topic].publish(array, encoding, header)
-        return printed
+                companions.append(output)
+        for output in companions:  # after the raw ones
+            self._compressed[output.topic].publish(output.array, output.encoding,
+                                                   output.message.header)
 
     def _statuses(self) -> list[DiagnosticStatus]:
         failures = sum(c.failures for c in self._compressed.values())

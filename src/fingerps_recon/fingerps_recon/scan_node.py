@@ -7,8 +7,10 @@ goal response carries no text, so the reason is logged and published on ``scan/r
 (std_msgs/String). The node declares the parameters (`scan.scan_settings`), calls the
 driver's ``capture_burst`` (``response_only`` while waiting for a finger;
 ``repeat_first_led`` and published on ``burst`` while capturing, so the recorder records
-it), reconstructs with the calibration in force (the transient-local calibration topics)
-and publishes the result, the feedback and the verdict on ``/diagnostics``.
+it), reconstructs with the calibration in force (the transient-local calibration topics,
+each message checked on arrival as recon_node checks it:
+``reconstruction.calibration_in_force``) and publishes the result, the feedback and the
+verdict on ``/diagnostics``.
 """
 
 from __future__ import annotations
@@ -16,7 +18,6 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import GetParameters
@@ -35,11 +36,12 @@ from fingerps_msgs.srv import CaptureBurst
 from fingerps_recon.errors import FingerpsReconError, ScanAbortedError
 from fingerps_recon.photometric.full_scale import full_scale_of
 from fingerps_recon.photometric.pipeline import ReconstructionOptions
+from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.burst_reconstruction import (
     BurstReconstruction,
-    PreparedCalibrations,
     reconstruct_burst,
 )
+from fingerps_recon.reconstruction.calibration_in_force import CalibrationInForce
 from fingerps_recon.reconstruction.outputs import (
     fingerprint_message,
     normal_map_array,
@@ -60,26 +62,28 @@ from fingerps_recon.scan.scan_settings import (
 from fingerps_ros import qos, topics
 from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher, key_values
 from fingerps_ros.errors import FingerpsError
-from fingerps_ros.image_conversion import array_to_image, image_to_array, images_to_array
+from fingerps_ros.image_conversion import array_to_image, image_to_array
 from fingerps_ros.node_runner import run_node
 from fingerps_ros.parameters import declare_parameters
 from fingerps_ros.point_cloud_conversion import points_to_cloud
 
 SCAN = "scan"                       # fingerps_msgs/action/Scan
 SCAN_REJECTIONS = "scan/rejections"  # std_msgs/String: why a goal was rejected
+# The bounds on a burst's and a flat field's images (recon_node's max_image_* parameters'
+# defaults).
+_LIMITS = BurstLimits()
 
 
 class ScanNode(Node):
     """Serves the Scan action over the driver's capture_burst service."""
 
-    def __init__(self) -> None:
-        super().__init__("scan", namespace=topics.NAMESPACE)
+    def __init__(self, **node_options: object) -> None:
+        """``node_options``: rclpy ``Node`` keywords (a test gives its ``context``)."""
+        super().__init__("scan", namespace=topics.NAMESPACE, **node_options)
         self._checks = declare_parameters(self, SCAN_PARAMETERS)
         self._checks.refuse_unknown_overrides(self)
         self._group = ReentrantCallbackGroup()
-        self._lights: LightCalibration | None = None
-        self._flat_maps: np.ndarray | None = None
-        self._prepared = PreparedCalibrations()
+        self._calibration = CalibrationInForce()
         self._sequence = ScanSequence(capture=self._capture_burst, reconstruct=self._reconstruct,
                                       logger=self.get_logger())
         self.create_subscription(LightCalibration, topics.LIGHT_CALIBRATION, self._on_lights,
@@ -144,13 +148,17 @@ class ScanNode(Node):
         return None
 
     def _on_lights(self, msg: LightCalibration) -> None:
-        self._lights = msg
+        try:
+            self._calibration.offer_lights(msg)
+        except FingerpsError as exc:
+            self.get_logger().error(f"light calibration refused: {exc}")
+            return
         self.get_logger().info(f"light calibration received: {len(msg.directions)} LEDs")
 
     def _on_flat(self, msg: FlatField) -> None:
         try:
-            self._flat_maps = images_to_array(msg.maps).astype(np.float32, copy=False)
-        except (FingerpsError, ValueError) as exc:
+            self._calibration.offer_flat(msg, _LIMITS)
+        except FingerpsError as exc:
             self.get_logger().error(f"flat field refused: {exc}")
 
     def _on_goal(self, goal: Scan.Goal) -> GoalResponse:
@@ -159,7 +167,8 @@ class ScanNode(Node):
             self._settings(goal)
         except FingerpsError as exc:  # a threshold the quality module refuses among them
             problem = f"impossible goal: {exc}"
-        reason = self._sequence.admit(problem, calibrated=self._lights is not None)
+        reason = self._sequence.admit(problem,
+                                      calibrated=self._calibration.lights is not None)
         if reason is not None:
             self.get_logger().warning(f"Scan goal rejected: {reason}")
             self._pub_rejections.publish(String(data=reason))
@@ -230,12 +239,9 @@ class ScanNode(Node):
 
     def _reconstruct(self, burst: ScanBurst, options: ReconstructionOptions
                      ) -> BurstReconstruction:
-        lights = self._lights
-        if lights is None:
-            raise ScanAbortedError("no light calibration: calibrate the lights first")
         return reconstruct_burst(
-            burst.source, lights, self._flat_maps, options=options,
-            mono16_full_scale=float(self._value("mono16_full_scale")), prepared=self._prepared)
+            burst.source, self._calibration, options=options,
+            mono16_full_scale=float(self._value("mono16_full_scale")), limits=_LIMITS)
 
     def _call(self, client: Client, request: object, timeout: float, what: str) -> Any:
         done = threading.Event()
@@ -262,7 +268,7 @@ class ScanNode(Node):
         return f"{values[0].string_value.rstrip('/')}/{values[1].string_value}"
 
     def _statuses(self) -> list[DiagnosticStatus]:
-        state = self._sequence.status(calibrated=self._lights is not None)
+        state = self._sequence.status(calibrated=self._calibration.lights is not None)
         return [DiagnosticStatus(
             name=f"{self.get_name()}: verdict", message=state.message,
             level=DiagnosticStatus.OK if state.ok else DiagnosticStatus.WARN,

@@ -22,7 +22,7 @@ def reconstruction_status(name: str, worker: ReconstructionWorker, *,
               "cores": str(available_cores()), "bursts_done": str(w.done),
               "bursts_failed": str(w.failed), "bursts_incomplete": str(w.incomplete),
               "bursts_rejected": str(w.rejected), "unexpected_errors": str(w.unexpected),
-              "calibrations_refused": str(w.calibrations_refused),
+              "calibrations_refused": str(w.calibration.refused_count),
               "bursts_without_flat_field": str(w.flat_unused), "last_error": w.last_error,
               "last_problem": w.last_problem, "fingerprints_made": str(w.prints_made),
               "fingerprints_rejected": str(w.prints_rejected),
@@ -30,8 +30,8 @@ def reconstruction_status(name: str, worker: ReconstructionWorker, *,
               "fingerprint_ms_median": (f"{float(np.median(w.print_ms)):.1f}" if w.print_ms
                                         else ""),
               "bursts_dropped": str(w.dropped), "compressed_failures": str(compressed_failures),
-              "calibrated": str(w.lights is not None),
-              "calibrations_prepared": str(w.prepared.count),
+              "calibrated": str(w.calibration.lights is not None),
+              "calibrations_prepared": str(w.calibration.prepared.count),
               **{key: f"{value:.1f}" for key, value in w.stages.medians().items()}}
     status.values = key_values(values)
     return status

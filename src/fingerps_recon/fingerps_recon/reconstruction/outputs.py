@@ -1,5 +1,6 @@
 """recon_node's output messages, built from a reconstruction (no node): the normals, the
-normal map, depth, albedo, the point cloud, and the fingerprint.
+normal map, depth, albedo, the point cloud, and the fingerprint (:class:`Output` each, with
+its topic; the node publishes them as they come).
 
 :func:`output_messages` builds each message only when the caller asks for the next one, so
 that the caller publishes each before the next is converted (the subscribers get the first
@@ -81,3 +82,8 @@ def fingerprint_message(image: np.ndarray, stamp: Time) -> Image:
     frame (``topics.FINGERPRINT_FRAME``)."""
     header = Header(stamp=stamp, frame_id=topics.FINGERPRINT_FRAME)
     return array_to_image(image, encoding="mono8", header=header)
+
+
+def fingerprint_output(image: np.ndarray, stamp: Time) -> Output:
+    """The ``fingerprint`` output of a rolled print (:func:`fingerprint_message`)."""
+    return Output(topics.FINGERPRINT, fingerprint_message(image, stamp), image, "mono8")

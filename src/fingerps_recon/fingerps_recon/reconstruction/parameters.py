@@ -102,5 +102,6 @@ def read_settings(node: Node) -> ReconSettings:
     limits = BurstLimits(max_width=int(g("max_image_width").value),
                          max_height=int(g("max_image_height").value),
                          max_frames=int(g("max_burst_frames").value))
-    return ReconSettings(options, limits, float(g("mono16_full_scale").value))
+    return ReconSettings(options, limits, float(g("mono16_full_scale").value),
+                         fingerprint=bool(g("fingerprint").value))
 

@@ -3,9 +3,10 @@ bursts reconstructed one by one, and the bookkeeping ``/diagnostics`` reports.
 
 :class:`ReconstructionWorker` is a plain class: the node's subscriptions hand it messages
 (``on_lights``, ``on_flat``, ``on_camera_info``, ``on_burst``), the node's worker thread runs
-:meth:`ReconstructionWorker.run`, and the node publishes what a burst made through the
-``publish`` callable it gives. The bursts go through two stages on two threads: the worker
-reconstructs burst n + 1 while an output thread publishes burst n (its messages and print;
+:meth:`ReconstructionWorker.run`, and the node publishes the messages the worker builds
+from a burst (the print included) through the ``publish`` callable it gives. The bursts go
+through two stages on two threads: the worker reconstructs burst n + 1 while an output
+thread builds and publishes burst n's messages (the print too;
 serial code only, so numba's parallel kernels stay on the worker's thread), in order, at
 most one burst waiting between them. The queue is bounded and drops the oldest burst (counted). A
 light calibration or flat field that cannot determine normals is refused on arrival (the
@@ -21,7 +22,7 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -31,23 +32,27 @@ from sensor_msgs.msg import CameraInfo
 
 from fingerps_msgs.msg import Burst, FlatField, LightCalibration
 from fingerps_recon.errors import (
-    FingerpsReconError,
     IncompleteBurstError,
     NoFingerError,
     RolledPrintError,
 )
 from fingerps_recon.photometric.kernel_warm_up import warm_up_kernels
 from fingerps_recon.photometric.pipeline import ReconstructionOptions
-from fingerps_recon.reconstruction.burst_intake import (
-    BurstLimits,
-    check_burst_size,
-    check_light_calibration,
-    flat_field_maps,
-)
+from fingerps_recon.reconstruction.burst_intake import BurstLimits, check_burst_size
 from fingerps_recon.reconstruction.burst_reconstruction import (
     BurstReconstruction,
-    PreparedCalibrations,
     reconstruct_burst,
+)
+from fingerps_recon.reconstruction.calibration_in_force import (
+    FLAT_FIELD,
+    LIGHTS,
+    CalibrationInForce,
+)
+from fingerps_recon.reconstruction.outputs import (
+    OUTPUT_TOPICS,
+    Output,
+    fingerprint_output,
+    output_messages,
 )
 from fingerps_recon.reconstruction.problem_log import LogGate, one_line
 from fingerps_recon.surface.rolled_print import RolledPrint
@@ -59,16 +64,19 @@ _T = TypeVar("_T")
 
 # Outcome of a burst, for the health level.
 _OK, _WARN, _BAD = 0, 1, 2
-_LIGHTS, _FLAT = "light calibration", "flat field"  # the calibrations a burst uses, by name
 
 
 @dataclass(frozen=True)
 class ReconSettings:
-    """The parameters a burst is reconstructed with, as they are now."""
+    """The parameters a burst is reconstructed with, and the outputs it is to give, as they
+    are now: ``wanted`` the topics of ``outputs.output_messages`` someone watches,
+    ``fingerprint`` whether to make the rolled print."""
 
     options: ReconstructionOptions
     limits: BurstLimits
     mono16_full_scale: float
+    wanted: tuple[str, ...] = OUTPUT_TOPICS
+    fingerprint: bool = False
 
 
 @dataclass(frozen=True)
@@ -115,8 +123,9 @@ class ReconstructionWorker:
     ----------
     settings : Callable[[], ReconSettings]
         The parameters now (read at every message and burst, so a change applies at once).
-    publish : Callable[[BurstReconstruction, Burst], bool]
-        Publishes what a burst made; False when an output was degraded (a WARN outcome).
+    publish : Callable[[Iterable[Output]], None]
+        Publishes a burst's outputs (``outputs.Output``: topic, message, the array of a
+        compressed companion), each as it comes: the worker builds them, the print included.
     logger : Log
         The node's logger.
     queue_depth, health_window : int
@@ -124,7 +133,7 @@ class ReconstructionWorker:
     """
 
     def __init__(self, settings: Callable[[], ReconSettings],
-                 publish: Callable[[BurstReconstruction, Burst], bool], logger: Log, *,
+                 publish: Callable[[Iterable[Output]], None], logger: Log, *,
                  queue_depth: int, health_window: int) -> None:
         self._settings = settings
         self._publish = publish
@@ -135,18 +144,15 @@ class ReconstructionWorker:
         self._stop = False
         self.stages = StageTimes()
         self.dropped = self.done = self.failed = self.incomplete = self.rejected = 0
-        self.unexpected = self.calibrations_refused = self.flat_unused = 0
+        self.unexpected = self.flat_unused = 0
         self.prints_made = self.prints_rejected = 0
         self.last_error = self.last_problem = self.last_print_problem = ""
         self.print_ms: deque[float] = deque(maxlen=50)
         # outcome of each recent burst: OK, WARN (no finger, flat field not used) or BAD
         self._outcomes: deque[int] = deque(maxlen=health_window)
-        self._refused: dict[str, str] = {}  # calibration kind -> why its last one was refused
         self._log_gate = LogGate()
-        self.lights: LightCalibration | None = None
-        self._flat_maps: np.ndarray | None = None
+        self.calibration = CalibrationInForce()
         self._camera: CameraInfo | None = None
-        self.prepared = PreparedCalibrations()
         self.ready = False
         self._count_lock = threading.Lock()  # the two stages count failures
         # Reconstructed bursts for the output thread (None: stop); at most one waits.
@@ -164,36 +170,33 @@ class ReconstructionWorker:
         return run
 
     # ------------------------------------------------------------------ intake
-    def _checked(self, kind: str, check: Callable[[], _T], *, held: object) -> _T | None:
-        """Run a calibration message's ``check``: its result, or None once the message is
-        refused (counted, logged, and WARN until one of its ``kind`` is accepted); ``held``
-        is the calibration of that kind in force now (None: none)."""
+    def _offer(self, kind: str, offer: Callable[[], object], held: object) -> object | None:
+        """Offer a calibration message to the calibration in force: what it put in force,
+        or None once it is refused (counted there, logged here, and WARN until one of its
+        ``kind`` is accepted); ``held`` is the calibration of that kind in force now."""
         try:
-            result = check()
+            return offer()
         except FingerpsError as exc:
-            self.calibrations_refused += 1
-            self._refused[kind] = str(exc)
             self.last_problem = f"{kind} refused: {exc}"
             self._log.error(f"{self.last_problem}; "
                             + ("the previous one stays in force" if held is not None
                                else "none is in force"))
             return None
-        self._refused.pop(kind, None)
-        return result
 
     def on_lights(self, msg: LightCalibration) -> None:
         """A light calibration: in force from the next burst on, unless it is refused."""
-        lights = self._checked(_LIGHTS, lambda: check_light_calibration(msg), held=self.lights)
-        if lights is not None:
-            self.lights = lights
+        calibration = self.calibration
+        if self._offer(LIGHTS, lambda: calibration.offer_lights(msg),
+                       calibration.lights) is not None:
             self._log.info(f"light calibration received: {len(msg.directions)} LEDs")
 
     def on_flat(self, msg: FlatField) -> None:
         """A flat field: in force from the next burst on, unless it is refused."""
-        maps = self._checked(_FLAT, lambda: flat_field_maps(msg, self._settings().limits),
-                             held=self._flat_maps)
-        if maps is not None:
-            self._flat_maps = maps
+        calibration = self.calibration
+        maps = self._offer(FLAT_FIELD,
+                           lambda: calibration.offer_flat(msg, self._settings().limits),
+                           calibration.flat_maps)
+        if isinstance(maps, np.ndarray):
             self._log.info(f"flat field received: {maps.shape[0]} maps {maps.shape[1:]}")
 
     def on_camera_info(self, msg: CameraInfo) -> None:
@@ -311,7 +314,7 @@ class ReconstructionWorker:
     def prepare_ahead(self) -> None:
         """While idle: prepare the calibration in force for the camera seen on camera_info
         (so that its first burst does not pay for it); the bursts prepare it otherwise."""
-        lights, camera = self.lights, self._camera
+        lights, camera = self.calibration.lights, self._camera
         if lights is None or camera is None or not camera.k[0] > 0:
             return
         shape = (int(camera.height), int(camera.width))
@@ -319,18 +322,17 @@ class ReconstructionWorker:
         limits = settings.limits
         if not (1 <= shape[0] <= limits.max_height and 1 <= shape[1] <= limits.max_width):
             return  # a camera_info of no size or beyond the bounds: its bursts will say so
-        maps = self._flat_maps
-        if maps is not None and maps.shape != (len(lights.directions), *shape):
-            maps = None
+        prepared = self.calibration.prepared
         try:
-            count = self.prepared.count
-            self.prepared.get(lights, maps, np.asarray(camera.k, dtype=np.float64).reshape(3, 3),
-                              shape, settings.options)
-            if self.prepared.count != count:
+            count = prepared.count
+            self.calibration.prepare(np.asarray(camera.k, dtype=np.float64).reshape(3, 3),
+                                     shape, settings.options)
+            if prepared.count != count:
+                flat = self.calibration.flat_for((len(lights.directions), *shape))
                 self._log.info(
                     f"calibration prepared for the {shape[1]}x{shape[0]} camera in "
-                    f"{self.prepared.seconds * 1e3:.0f} ms"
-                    + ("" if maps is not None else " (no flat field)"))
+                    f"{prepared.seconds * 1e3:.0f} ms"
+                    + ("" if flat is not None else " (no flat field)"))
         except FingerpsError as exc:  # the first burst will say it again, counted
             self._log.warning(f"calibration not prepared: {exc}", throttle_duration_sec=10.0)
 
@@ -348,20 +350,11 @@ class ReconstructionWorker:
     def _reconstruct(self, burst: Burst, arrival_ns: int) -> _Made:
         """The first stage: the burst reconstructed with the calibration in force."""
         start_ns = time.time_ns()
-        lights = self.lights
-        if lights is None:
-            refused = self._refused.get(_LIGHTS)
-            raise FingerpsReconError(
-                "no light calibration yet"
-                + (f" (the last one was refused: {refused})" if refused else "")
-                + ": call the calibrate_lights service (or start calib_node with a saved "
-                "calibration) before sending bursts")
-        maps = self._flat_maps
+        maps = self.calibration.flat_maps
         settings = self._settings()
         made = reconstruct_burst(
-            burst, lights, maps, options=settings.options,
-            mono16_full_scale=settings.mono16_full_scale, prepared=self.prepared,
-            limits=settings.limits)
+            burst, self.calibration, options=settings.options,
+            mono16_full_scale=settings.mono16_full_scale, limits=settings.limits)
         outcome = _OK
         if maps is not None and not made.flat_field_used:
             outcome = _WARN
@@ -372,9 +365,13 @@ class ReconstructionWorker:
         return _Made(burst, arrival_ns, start_ns, made, outcome)
 
     def _deliver(self, item: _Made) -> None:
-        """The second stage: a reconstructed burst published, timed, counted, logged."""
+        """The second stage: a reconstructed burst's outputs built and handed to
+        ``publish`` one by one (each published before the next is built), timed, counted,
+        logged; a print that could not be made degrades the burst."""
         burst, made, outcome = item.burst, item.made, item.outcome
-        if not self._publish(made, burst):
+        unprinted: list[Burst] = []
+        self._publish(self._outputs(made, burst, self._settings(), unprinted))
+        if unprinted:
             outcome = _WARN
         result = made.result
         self.stages.add(time_nanoseconds(burst.header.stamp), item.arrival_ns, item.start_ns,
@@ -387,6 +384,19 @@ class ReconstructionWorker:
         self._log.info(
             f"burst {burst.burst_id}: {result.mask.sum()} px, "
             f"{result.timings_ms['total']:.0f} ms ({stages} ms)", throttle_duration_sec=2.0)
+
+    def _outputs(self, made: BurstReconstruction, burst: Burst, settings: ReconSettings,
+                 unprinted: list[Burst]) -> Iterator[Output]:
+        """A burst's outputs, built as they are asked for: those of ``settings.wanted``,
+        then the print if ``settings.fingerprint`` (``burst`` added to ``unprinted`` when it
+        cannot be made)."""
+        yield from output_messages(made.result, burst.header, settings.wanted)
+        if settings.fingerprint:
+            made_print = self.fingerprint(made, burst)
+            if made_print is None:
+                unprinted.append(burst)
+            else:
+                yield fingerprint_output(made_print.image, burst.header.stamp)
 
     def fingerprint(self, made: BurstReconstruction, burst: Burst) -> RolledPrint | None:
         """The burst's rolled print, timed and counted; None (logged, counted) when it
@@ -414,9 +424,10 @@ class ReconstructionWorker:
         if outcomes and bad == len(outcomes) == self._outcomes.maxlen:
             return DiagnosticStatus.ERROR, (
                 f"the last {bad} bursts all failed; last: {self.last_problem}")
-        if self._refused:
+        if self.calibration.refused:
             return DiagnosticStatus.WARN, "; ".join(
-                f"{kind} refused: {reason}" for kind, reason in self._refused.items())
+                f"{kind} refused: {reason}"
+                for kind, reason in self.calibration.refused.items())
         if self.last_error:
             return DiagnosticStatus.WARN, self.last_error
         if any(o != _OK for o in outcomes):
