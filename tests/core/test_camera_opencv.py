@@ -18,7 +18,7 @@ from fingerps_driver.board.board_emulator import BoardEmulator
 from fingerps_driver.board.led_board import LedBoard
 from fingerps_driver.cameras.camera import Camera, ExposureControl, to_mono
 from fingerps_driver.cameras.camera_opencv import OpenCvCamera, parse_device
-from fingerps_driver.capture.burst import capture_burst
+from fingerps_driver.capture.burst import BurstStep, capture_burst
 from fingerps_driver.errors import CameraError
 
 H, W = 6, 8
@@ -142,7 +142,7 @@ def test_burst_with_a_real_videocapture_fails_cleanly_on_a_short_or_odd_source(t
                          discard_frames=0) as camera:
         result = capture_burst(board, camera, burst_id=1, led_order=range(7),
                                exposures_s=0.01, levels=1.0)
-        assert not result.ok and result.failed_step == "grab" and result.camera_failed
+        assert not result.ok and result.failed_step is BurstStep.GRAB and result.camera_failed
         assert "LED 4" in result.reason and "CameraError" in result.reason
         assert emulator.lit_mask == 0
         result = capture_burst(board, camera, burst_id=2, led_order=range(7),

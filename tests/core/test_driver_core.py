@@ -5,6 +5,7 @@ simulated rig's changes, closing."""
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 from unittest.mock import Mock
 
@@ -20,9 +21,10 @@ from fingerps_driver.cameras.camera_setup import (
     CameraBackend,
     CameraSettings,
 )
+from fingerps_driver.capture.burst import BurstStep
 from fingerps_driver.capture.burst_plan import BurstPlan, make_plan
 from fingerps_driver.driver_core import DriverCore
-from fingerps_driver.errors import FingerpsDriverError
+from fingerps_driver.errors import BoardDisconnectedError, BoardRejectedError, FingerpsDriverError
 from fingerps_driver.simulation import Scene
 
 W, H = 96, 72
@@ -83,6 +85,19 @@ def test_a_burst_is_captured_and_counted(sim):
     assert core.capture(PLAN, with_dark=False).burst_id == 2
 
 
+def test_continuous_capture_counts_towards_the_rate(sim):
+    core = sim.core
+    core.set_rate(5.0)
+    assert core.capture_rate.report(time.monotonic()).requested == 5.0
+    core.capture_rate.set_rate(5.0, time.monotonic() - 5.0)  # a full window (5 s) has passed
+    assert core.state is BoardState.CONNECTED and core.port == core.board.led_board.port
+    for _ in range(3):
+        result = core.capture_continuous(PLAN, with_dark=False)
+        assert result is not None and result.ok, result
+    assert core.capture_rate.report(time.monotonic()).achieved == pytest.approx(3 / 5.0)
+    assert core.check_port() is False  # the emulator's pty is there
+
+
 def test_a_board_lost_mid_burst_is_reported_and_bursts_are_refused_meanwhile(sim):
     core = sim.core
     core.board.emulator.inject(Fault.DISCONNECT, after=3)
@@ -97,8 +112,10 @@ def test_a_board_lost_mid_burst_is_reported_and_bursts_are_refused_meanwhile(sim
     assert sim.changes == [BoardState.DISCONNECTED]
     assert [d for d, _ in sim.timers.started] == [0.5]
     refused = core.capture(PLAN, with_dark=False)
-    assert not refused.ok and refused.failed_step == "board"
-    assert refused.error_type == "BoardDisconnectedError" and refused.burst_id == 0
+    assert not refused.ok and refused.failed_step is BurstStep.BOARD
+    assert refused.error_type is BoardDisconnectedError
+    assert core.capture_continuous(PLAN, with_dark=False) is None  # the rate timer waits
+    assert refused.burst_id == 0
     assert " is disconnected (" in refused.reason and "; reconnecting, next attempt in" in \
         refused.reason
     assert core.burst_id == 1 and c.failed == 2
@@ -132,12 +149,13 @@ def test_a_board_waited_for_is_said_after_the_camera(tmp_path):
               CameraSettings(backend=CameraBackend.FOLDER, folder=_folder(tmp_path / "set")))
     core = rig.open()
     try:
-        assert core.board.state is BoardState.WAITING and core.camera.is_open
+        assert core.state is BoardState.WAITING and core.camera.is_open
+        assert core.port == link
         assert [name for name, _, _ in rig.log.method_calls] == ["warning", "warning"]
         assert rig.log.method_calls[0].args[0].startswith("no camera calibration at")
         assert rig.log.method_calls[1].args[0].startswith(f"waiting for the LED board on {link}: ")
         assert rig.timers.started == []
-        core.board.start()
+        core.start()
         assert [d for d, _ in rig.timers.started] == [0.5]
         assert "is not there yet" in core.capture(PLAN, with_dark=False).reason
     finally:
@@ -157,7 +175,7 @@ def test_a_camera_failure_is_the_camera_s(sim, monkeypatch):
 
 def test_a_rejected_command_says_what_to_check(sim):
     result = sim.core.capture(BurstPlan((0, 9), (0.001, 0.001), (1.0, 1.0)), with_dark=False)
-    assert not result.ok and result.error_type == "BoardRejectedError"
+    assert not result.ok and result.error_type is BoardRejectedError
     assert said(sim.log, "error", "the board rejected a command: check led_count and "
                                  "led_order against the board")
     assert sim.core.board.state is BoardState.CONNECTED

@@ -17,7 +17,7 @@ from polling import poll_until
 from fingerps_driver.board.board_emulator import BoardEmulatorControl, EmulatorControlServer, Fault
 from fingerps_driver.board.led_board import LedBoard
 from fingerps_driver.cameras.camera import SimulatedCamera
-from fingerps_driver.capture.burst import capture_burst
+from fingerps_driver.capture.burst import BurstStep, capture_burst
 from fingerps_driver.errors import (
     BoardDisconnectedError,
     BoardEmulatorError,
@@ -95,8 +95,8 @@ def test_deferred_power_cut_fails_the_burst_at_the_known_step(control, board, em
     # a burst sends 7 LEVEL, then LEDS per LED, then OFF: the 10th reply is LED 2's switch
     control.inject(Fault.DISCONNECT, after=9)
     result = _burst(board, camera, burst_id=2)
-    assert not result.ok and result.failed_step == "switch"
-    assert result.error_type == "BoardDisconnectedError", result.reason
+    assert not result.ok and result.failed_step is BurstStep.SWITCH
+    assert result.error_type is BoardDisconnectedError, result.reason
     assert "LED 2" in result.reason
     assert not board.is_open and board.acknowledged_mask is None
     poll_until(lambda: not control.state()["connected"], 2, interval_s=0.01)

@@ -1,7 +1,11 @@
 """The driver without ROS: the board's connection, the camera, and the bursts taken with them.
 
 driver_node reads its parameters into settings, makes one ``DriverCore`` and converts what
-it returns into messages. The core opens the hardware (the board first: a missing port is
+it returns into messages; it calls the core through ``open``/``start``/``close``,
+``capture`` (a request), ``capture_continuous`` (the rate timer), ``set_rate``, ``check_port``
+(the diagnostics timer), ``state`` and ``port``, and the simulated rig's setters. A failed
+burst says its step as a ``capture.burst.BurstStep`` and its error as the exception's class.
+The core opens the hardware (the board first: a missing port is
 the first thing to say), sequences each burst through ``capture.burst.capture_burst``
 under one lock (no reconnect and no change of the simulated rig in the middle of a burst),
 refuses bursts while the board is away, and keeps the counters, timing windows and capture
@@ -11,6 +15,7 @@ rate the diagnostics report.
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -30,7 +35,7 @@ from fingerps_driver.cameras.camera_setup import (
     make_camera,
     open_calibration,
 )
-from fingerps_driver.capture.burst import BurstResult, capture_burst
+from fingerps_driver.capture.burst import BurstResult, BurstStep, capture_burst
 from fingerps_driver.capture.burst_plan import BurstPlan
 from fingerps_driver.capture.capture_rate import CaptureRate
 from fingerps_driver.errors import (
@@ -61,8 +66,8 @@ class BurstCounters:
 
 def refused(reason: str) -> BurstResult:
     """The result of a burst refused because the board is away."""
-    return BurstResult(0, (), None, False, reason, 0.0, failed_step="board",
-                       error_type=BoardDisconnectedError.__name__)
+    return BurstResult(0, (), None, False, reason, 0.0, failed_step=BurstStep.BOARD,
+                       error_type=BoardDisconnectedError)
 
 
 class DriverCore:
@@ -132,6 +137,42 @@ class DriverCore:
             self.close()
             raise
 
+    # ------------------------------------------------------------------ what the node calls
+    @property
+    def state(self) -> BoardState:
+        """The board's connection state."""
+        return self.board.state
+
+    @property
+    def port(self) -> str:
+        """The serial port the board is on (the emulator's pty when emulated)."""
+        board = self.board.led_board
+        return board.port if board is not None else self.board.settings.port
+
+    def start(self) -> None:
+        """Start the board's connection (after :meth:`open` and the node's set-up)."""
+        self.board.start()
+
+    def check_port(self) -> bool:
+        """The diagnostics timer's check: True if the board's port vanished and the board
+        was reported lost now (the loss publishes the diagnostics itself)."""
+        return self.board.lose_if_port_vanished()
+
+    def set_rate(self, rate: float) -> None:
+        """Continuous capture at ``rate`` bursts/s from now on (0: on request only)."""
+        self.capture_rate.set_rate(rate, time.monotonic())
+
+    def capture_continuous(self, plan: BurstPlan, *, with_dark: bool) -> BurstResult | None:
+        """The rate timer's burst: None while the board is away (reported in the
+        diagnostics; a request would only fail), else :meth:`capture`'s result, counted
+        towards the capture rate when whole."""
+        if self.board.state is not BoardState.CONNECTED:
+            return None
+        result = self.capture(plan, with_dark=with_dark)
+        if result.ok:
+            self.capture_rate.captured(time.monotonic())
+        return result
+
     def capture(self, plan: BurstPlan, *, with_dark: bool,
                 repeat_first: bool = False) -> BurstResult:
         """Capture one burst of ``plan``, or refuse it while the board is away.
@@ -184,7 +225,8 @@ class DriverCore:
         if (board is not None and self.board.state is BoardState.CONNECTED
                 and not board.is_open):
             self.board.lost(result.reason)
-        elif result.error_type == BoardRejectedError.__name__:
+        elif result.error_type is not None and issubclass(result.error_type,
+                                                          BoardRejectedError):
             self._log.error("the board rejected a command: check led_count and "
                             "led_order against the board", throttle_duration_sec=10.0)
 

@@ -36,7 +36,6 @@ from fingerps_calib.intrinsics.camera_info_conversion import (
     camera_info_to_intrinsics,
     intrinsics_to_camera_info,
 )
-from fingerps_driver.board.board_connection import BoardState
 from fingerps_driver.burst_conversion import burst_message, stamped_camera_info, tagged_frame
 from fingerps_driver.cameras.camera_info_manager import CameraCalibration
 from fingerps_driver.capture.burst import BurstResult
@@ -93,11 +92,10 @@ class DriverNode(Node):
         self._rate_timer = None
         self._apply_rate(self._param("rate"))
         self.add_post_set_parameters_callback(self._after_set)
-        self._core.board.start()
-        board, camera = self._core.board, self._core.camera
-        assert board.led_board is not None
+        self._core.start()
+        core, camera = self._core, self._core.camera
         self.get_logger().info(
-            f"driver ready: board on {board.led_board.port} ({board.state.value}), "
+            f"driver ready: board on {core.port} ({core.state.value}), "
             f"{self._param('led_count')} LEDs, order {list(burst_plan(self._param).led_order)}"
             f", camera {self._param('camera')} {camera.width}x{camera.height} "
             f"{camera.encoding}")
@@ -122,7 +120,7 @@ class DriverNode(Node):
             core.pose_finger(finger_config(self._param))
 
     def _apply_rate(self, rate: float) -> None:
-        self._core.capture_rate.set_rate(rate, time.monotonic())
+        self._core.set_rate(rate)
         if self._rate_timer is not None:
             self.destroy_timer(self._rate_timer)
             self._rate_timer = None
@@ -140,11 +138,10 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ capture
     def _on_rate_timer(self) -> None:
-        if self._core.board.state is not BoardState.CONNECTED:
-            return  # reported in the diagnostics; requests would only fail
-        result, _ = self.capture(with_dark=bool(self._param("with_dark_frame")))
-        if result.ok:
-            self._core.capture_rate.captured(time.monotonic())
+        result = self._core.capture_continuous(burst_plan(self._param),
+                                               with_dark=bool(self._param("with_dark_frame")))
+        if result is not None and result.ok:
+            self._publish(result, publish=True)
 
     def _on_capture(self, request: CaptureBurst.Request,
                     response: CaptureBurst.Response) -> CaptureBurst.Response:
@@ -227,7 +224,7 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ diagnostics
     def _on_diagnostics_timer(self) -> None:
-        if not self._core.board.lose_if_port_vanished():  # a loss publishes them itself
+        if not self._core.check_port():  # a loss publishes them itself
             self._diagnostics.publish()
 
     def _statuses(self) -> list[DiagnosticStatus]:

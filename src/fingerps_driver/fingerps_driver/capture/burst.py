@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
+from enum import Enum
 from typing import Protocol
 
 import numpy as np
@@ -65,6 +66,24 @@ class CapturedFrame:
     level: float
 
 
+class BurstStep(Enum):
+    """The step of a burst that failed (``BurstResult.failed_step``)."""
+
+    BOARD = "board"        # refused: the board is away (driver_core)
+    LEVEL = "level"        # an LED's level set on the board
+    EXPOSURE = "exposure"  # the camera's exposure set
+    SWITCH = "switch"      # an LED switched on alone
+    GRAB = "grab"          # an LED's frame grabbed
+    REPEAT = "repeat"      # the first LED's frame grabbed again
+    OFF = "off"            # the LEDs switched off
+    DARK = "dark"          # the dark frame grabbed
+
+    @property
+    def at_camera(self) -> bool:
+        """Whether the step is the camera's (a grab or an exposure change)."""
+        return self in (BurstStep.GRAB, BurstStep.DARK, BurstStep.EXPOSURE, BurstStep.REPEAT)
+
+
 @dataclass(frozen=True)
 class BurstResult:
     """Outcome of ``capture_burst``.
@@ -83,12 +102,11 @@ class BurstResult:
         Why the burst failed (step, LED, error and what to do); ``""`` when ok.
     duration_s : float
         Wall time from the first command to the last, failure or not.
-    failed_step : str
-        The step that failed (``"level"``, ``"exposure"``, ``"switch"``, ``"grab"``,
-        ``"repeat"``, ``"off"``, ``"dark"``); ``""`` when ok.
-    error_type : str
-        Class name of the error that failed it (``"BoardDisconnectedError"``,
-        ``"CameraError"``...), ``""`` when ok or when the step failed a check.
+    failed_step : BurstStep or None
+        The step that failed; None when ok.
+    error_type : type or None
+        The class of the error that failed it (``BoardDisconnectedError``, ``CameraError``,
+        ...); None when ok or when the step failed a check (a frame of the wrong size...).
     repeat : CapturedFrame or None
         The first LED of ``led_order`` lit again after the last one, if asked for and ok.
     """
@@ -99,30 +117,30 @@ class BurstResult:
     ok: bool
     reason: str
     duration_s: float
-    failed_step: str = ""
-    error_type: str = ""
+    failed_step: BurstStep | None = None
+    error_type: type[Exception] | None = None
     repeat: CapturedFrame | None = None
 
     @property
     def camera_failed(self) -> bool:
         """True if the burst failed at the camera (a grab or an exposure change)."""
-        return self.failed_step in ("grab", "dark", "exposure", "repeat")
+        return self.failed_step is not None and self.failed_step.at_camera
 
 
 class _StepFailedError(Exception):
     """A step of the burst failed; the message names the step and the LED."""
 
-    def __init__(self, step: str, led: int | None, detail: str | Exception) -> None:
-        where = f"step '{step}'" + ("" if led is None else f" LED {led}")
+    def __init__(self, step: BurstStep, led: int | None, detail: str | Exception) -> None:
+        where = f"step '{step.value}'" + ("" if led is None else f" LED {led}")
         self.step = step
-        self.error_type = type(detail).__name__ if isinstance(detail, Exception) else ""
+        self.error_type = type(detail) if isinstance(detail, Exception) else None
         if isinstance(detail, Exception):
             detail = f"{type(detail).__name__}: {detail}"
         super().__init__(f"{where}: {detail}")
 
 
 @contextmanager
-def _step(step: str, led: int | None) -> Iterator[None]:
+def _step(step: BurstStep, led: int | None) -> Iterator[None]:
     """Report a driver error raised within as ``_StepFailedError`` naming ``step`` and ``led``."""
     try:
         yield
@@ -221,17 +239,17 @@ def capture_burst(
     def expose(exposure: float, led: int | None) -> None:
         """Set the camera's exposure, if it can be set, before ``led`` is lit."""
         if exposure_control is not None:
-            with _step("exposure", led):
+            with _step(BurstStep.EXPOSURE, led):
                 exposure_control.set_exposure(exposure)
 
-    def shoot(step: str, led: int, exposure: float, code: int) -> CapturedFrame:
+    def shoot(step: BurstStep, led: int, exposure: float, code: int) -> CapturedFrame:
         """Light ``led`` alone, wait for the acknowledgement, grab its frame as ``step``."""
         expose(exposure, led)
-        with _step("switch", led):
+        with _step(BurstStep.SWITCH, led):
             acked = board.set_leds(1 << led)
         if acked != 1 << led:
             raise _StepFailedError(
-                "switch", led, f"board acknowledged mask {acked:#x}, not {1 << led:#x}")
+                BurstStep.SWITCH, led, f"board acknowledged mask {acked:#x}, not {1 << led:#x}")
         stamp = clock()
         image = _grab(camera, step, led, exposure + grab_timeout_s, shape, dtype)
         return CapturedFrame(led, image, stamp, exposure, code / MAX_LEVEL)
@@ -239,18 +257,20 @@ def capture_burst(
     start = time.monotonic()
     try:
         for led, code in programmed.items():
-            with _step("level", led):
+            with _step(BurstStep.LEVEL, led):
                 board.set_level(led, code)
-        frames = [shoot("grab", *entry) for entry in zip(order, exposures, codes, strict=True)]
-        repeat = shoot("repeat", order[0], exposures[0], codes[0]) if repeat_first else None
-        with _step("off", None):
+        frames = [shoot(BurstStep.GRAB, *entry)
+                  for entry in zip(order, exposures, codes, strict=True)]
+        repeat = (shoot(BurstStep.REPEAT, order[0], exposures[0], codes[0]) if repeat_first
+                  else None)
+        with _step(BurstStep.OFF, None):
             board.all_off()
         dark = None
         if with_dark:
             exposure = max(exposures)
             expose(exposure, None)
             stamp = clock()
-            image = _grab(camera, "dark", None, exposure + grab_timeout_s, shape, dtype)
+            image = _grab(camera, BurstStep.DARK, None, exposure + grab_timeout_s, shape, dtype)
             dark = CapturedFrame(DARK_LED, image, stamp, exposure, 0.0)
     except _StepFailedError as exc:
         with suppress(FingerpsDriverError):
@@ -264,7 +284,7 @@ def capture_burst(
 
 def _grab(
     camera: Camera,
-    step: str,
+    step: BurstStep,
     led: int | None,
     timeout_s: float,
     shape: tuple[int, ...],
