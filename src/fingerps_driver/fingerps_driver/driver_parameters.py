@@ -17,7 +17,7 @@ import numpy as np
 
 from fingerps_calib.intrinsics.camera_info_url import DEFAULT_CAMERA_INFO_URL
 from fingerps_driver.board.backoff import Backoff
-from fingerps_driver.board.board_connection import SIM_PORT, BoardSettings
+from fingerps_driver.board.board_connection import BoardSettings
 from fingerps_driver.board.board_protocol import MAX_TRIGGER_US
 from fingerps_driver.cameras.camera_setup import CameraBackend, CameraSettings, SimSettings
 from fingerps_driver.capture.burst_plan import (
@@ -34,6 +34,10 @@ from fingerps_ros.parameter_table import ParameterRow, one_of
 
 Values = Callable[[str], Any]
 """The node's current value of a parameter, by name."""
+
+_BOARD = BoardSettings()
+_CAMERA = CameraSettings()
+# The table's defaults are these settings' defaults (each written once, in its dataclass).
 
 FINGER_POSE = ("sim.finger_identity", "sim.finger_roll_deg", "sim.finger_yaw_deg",
                "sim.finger_pitch_deg", "sim.finger_shift_mm")
@@ -98,42 +102,43 @@ def driver_parameters(value: Values) -> tuple[ParameterRow, ...]:
     return (
         # the board
         ParameterRow(
-            "port", SIM_PORT,
+            "port", _BOARD.port,
             "Serial device of the LED board (e.g. /dev/ttyACM0, or the emulator's --link), "
             "or 'sim' for the built-in board emulator on a pseudo-terminal", read_only=True),
         ParameterRow(
-            "baudrate", 115200, "Serial baud rate", min_value=1200, max_value=4_000_000,
+            "baudrate", _BOARD.baudrate, "Serial baud rate", min_value=1200, max_value=4_000_000,
             integer=True, read_only=True),
         ParameterRow(
-            "board_timeout", 0.05, "Seconds one attempt waits for the board's reply",
+            "board_timeout", _BOARD.timeout_s, "Seconds one attempt waits for the board's reply",
             min_value=0.005, max_value=2.0, read_only=True),
         ParameterRow(
-            "board_retries", 2, "Resends of a command after a lost, late or corrupted reply",
-            min_value=0, max_value=10, integer=True, read_only=True),
+            "board_retries", _BOARD.retries,
+            "Resends of a command after a lost, late or corrupted reply", min_value=0,
+            max_value=10, integer=True, read_only=True),
         ParameterRow(
-            "wait_for_port", False,
+            "wait_for_port", _BOARD.wait_for_port,
             "If the board is missing at start, wait and retry (with back-off) instead of "
             "exiting with code 2", read_only=True),
         ParameterRow(
-            "reconnect_initial_s", 0.5,
+            "reconnect_initial_s", _BOARD.backoff.initial_s,
             "First delay before reopening a lost board, seconds; doubled per failed attempt",
             min_value=0.01, max_value=60.0, read_only=True),
         ParameterRow(
-            "reconnect_max_s", 5.0,
+            "reconnect_max_s", _BOARD.backoff.max_s,
             "Longest delay between attempts to reopen a lost board, seconds",
             check=lambda v: None if v >= value("reconnect_initial_s")
             else "must be >= reconnect_initial_s",
             min_value=0.01, max_value=600.0, read_only=True),
         ParameterRow(
-            "led_count", 7, "Number of LEDs on the board", min_value=3, max_value=16,
+            "led_count", _BOARD.led_count, "Number of LEDs on the board", min_value=3, max_value=16,
             integer=True, read_only=True),
         ParameterRow(
-            "trigger_delay_us", 0,
+            "trigger_delay_us", _BOARD.trigger_delay_us,
             "Camera trigger: microseconds from the LEDs' switch to the trigger pulse (the "
             "board's TRIG command; the AVR firmware rounds up to 16 us)",
             min_value=0, max_value=MAX_TRIGGER_US, integer=True, read_only=True),
         ParameterRow(
-            "trigger_width_us", 0,
+            "trigger_width_us", _BOARD.trigger_width_us,
             "Camera trigger: pulse width in microseconds after every LED switch; 0 = no "
             "trigger (a board without one is then fine). Set at connect and reconnect",
             min_value=0, max_value=MAX_TRIGGER_US, integer=True, read_only=True),
@@ -166,99 +171,99 @@ def driver_parameters(value: Values) -> tuple[ParameterRow, ...]:
             "Add an all-LEDs-off frame to continuous bursts (ambient subtraction)"),
         # the camera
         ParameterRow(
-            "camera", CameraBackend.SIM.value,
+            "camera", _CAMERA.backend.value,
             "Camera backend: 'sim' (the simulated rig), 'v4l2' (a real camera through "
             "OpenCV/V4L2) or 'folder' (replay of a DiLiGenT-layout image folder)",
             check=one_of(*(c.value for c in CameraBackend)), read_only=True),
         ParameterRow(
-            "camera_device", "/dev/video0",
+            "camera_device", _CAMERA.device,
             "v4l2: device path (e.g. /dev/video0 or /dev/v4l/by-id/...) or index",
             read_only=True),
         ParameterRow(
-            "camera_folder", "",
+            "camera_folder", _CAMERA.folder,
             "folder: the folder holding filenames.txt; the i-th listed image is LED i's",
             read_only=True),
         ParameterRow(
-            "camera_width", 0,
+            "camera_width", _CAMERA.width,
             "Image width to ask for (v4l2), to expect (folder) or to render (sim); 0 = the "
             "camera's", check=lambda v: None if v >= 0 else "must be >= 0 (0 = default)",
             min_value=0, max_value=16384, integer=True, read_only=True),
         ParameterRow(
-            "camera_height", 0, "Image height, as camera_width",
+            "camera_height", _CAMERA.height, "Image height, as camera_width",
             check=lambda v: None if v >= 0 else "must be >= 0 (0 = default)",
             min_value=0, max_value=16384, integer=True, read_only=True),
         ParameterRow(
-            "camera_pixel_format", "",
+            "camera_pixel_format", _CAMERA.pixel_format,
             "mono8 or mono16; empty = the camera's (v4l2: mono8, folder: the images' bit "
             "depth, sim: sim.bit_depth)", check=one_of("", "mono8", "mono16"),
             read_only=True),
         ParameterRow(
-            "camera_fourcc", "",
+            "camera_fourcc", _CAMERA.fourcc,
             "v4l2: pixel format to ask for (GREY, YUYV, MJPG, 'Y16 '...); empty = mono8: "
             "the camera's default, mono16: 'Y16 '",
             check=lambda v: None if len(v) in (0, 4) and v.isascii()
             else "must be four ASCII characters (e.g. GREY, YUYV, MJPG) or empty",
             read_only=True),
         ParameterRow(
-            "camera_fps", 0.0, "v4l2: frame rate to ask for; 0 = the camera's",
+            "camera_fps", _CAMERA.fps, "v4l2: frame rate to ask for; 0 = the camera's",
             min_value=0.0, max_value=1000.0, read_only=True),
         ParameterRow(
-            "camera_gain", -1.0,
+            "camera_gain", _CAMERA.gain,
             "v4l2: gain in the device's units; negative = leave it as it is",
             min_value=-1.0, max_value=1e6, read_only=True),
         ParameterRow(
-            "camera_discard_frames", 1,
+            "camera_discard_frames", _CAMERA.discard_frames,
             "v4l2: frames dropped after each LED switch before the one kept (a free-running "
             "camera's frame in progress mixes two lights)", min_value=0, max_value=10,
             integer=True, read_only=True),
         ParameterRow(
-            "camera_info_url", "",
+            "camera_info_url", _CAMERA.camera_info_url,
             "Where the camera's calibration is loaded from and set_camera_info stores it "
             "(camera_info_manager's rules): file:///path.yaml, package://pkg/path.yaml, "
             "${NAME} and ${ROS_HOME} substituted; empty = "
             f"{DEFAULT_CAMERA_INFO_URL}. Missing: the sim rig's true intrinsics, or none "
             "(K = 0) for the other cameras", read_only=True),
         ParameterRow(
-            "camera_info_file", "",
+            "camera_info_file", _CAMERA.camera_info_file,
             "Older form of camera_info_url: a camera_info YAML path, which must exist and "
             "fit the camera (else exit 2); empty = use camera_info_url", read_only=True),
         ParameterRow(
             "frame_id", "fingerps_camera_optical_frame",
             "TF frame of the camera's optical frame (REP-103)", read_only=True),
         ParameterRow(
-            "camera_name", "fingerps_sim",
+            "camera_name", _CAMERA.camera_name,
             "Camera name: ${NAME} of camera_info_url, written into the calibration file "
             "(letters, digits, _)", read_only=True),
         # the simulated rig
         ParameterRow(
-            "sim.scene", Scene.FINGER.value,
+            "sim.scene", _CAMERA.sim.scene.value,
             "What the simulated camera sees: finger, sphere, white_target or empty",
             check=one_of(*(s.value for s in Scene))),
         ParameterRow(
-            "sim.reflectance", Reflectance.HK.value,
+            "sim.reflectance", _CAMERA.sim.reflectance.value,
             "Reflectance the simulated rig renders the finger with: hk or lambert",
             check=one_of(*(r.value for r in Reflectance)), read_only=True),
         ParameterRow(
-            "sim.bit_depth", 8, "Simulated sensor bit depth: 8 or 12",
+            "sim.bit_depth", _CAMERA.sim.bit_depth, "Simulated sensor bit depth: 8 or 12",
             check=lambda v: None if v in (8, 12) else "must be 8 or 12",
             min_value=8, max_value=12, integer=True, read_only=True),
         ParameterRow(
-            "sim.seed", 0, "Seed of the simulated sensor noise", min_value=0, integer=True,
-            read_only=True),
+            "sim.seed", _CAMERA.sim.seed, "Seed of the simulated sensor noise", min_value=0,
+            integer=True, read_only=True),
         ParameterRow(
-            "sim.sphere_center", list(RigConfig().sphere_center_optical_m),
+            "sim.sphere_center", list(_CAMERA.sim.sphere_center_optical_m),
             "Where the simulated calibration sphere is, [x, y, z] metres in the optical "
             "frame; move it between calibrate_lights calls (add_placement) to estimate the "
             "LED positions", check=_sphere_center_problem),
         ParameterRow(
-            "sim.finger_motion_px", [0.0, 0.0],
+            "sim.finger_motion_px", list(_CAMERA.sim.motion_px),
             "Simulated finger motion during a burst, [du, dv] pixels: frame i of n LEDs is "
             "shifted by i/n of it, the repeated first LED (repeat_first_led) by all of it",
             check=lambda v: None if len(v) == 2 and all(np.isfinite(v))
             and max(abs(x) for x in v) <= 100 else
             "must be two finite numbers [du, dv] in pixels, each within +-100"),
         ParameterRow(
-            "sim.finger_motion_bursts", 0,
+            "sim.finger_motion_bursts", _CAMERA.sim.motion_bursts,
             "Bursts the finger moves in once sim.finger_motion_px is set (counted from "
             "then); 0 = every burst", min_value=0, max_value=1_000_000, integer=True),
         ParameterRow(
@@ -288,7 +293,7 @@ def driver_parameters(value: Values) -> tuple[ParameterRow, ...]:
             "Shift [dx, dy] of the simulated finger's apex in the image plane, mm (optical "
             "x right, y down), each within +-5", check=_finger_shift_problem),
         ParameterRow(
-            "sim.board_control", "",
+            "sim.board_control", _BOARD.control,
             "Control socket of a board_emulator process (its --control): with a port other "
             "than 'sim', the sim and folder cameras see the LEDs that emulator has lit",
             read_only=True),

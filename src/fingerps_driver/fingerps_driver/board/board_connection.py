@@ -20,8 +20,8 @@ from enum import Enum
 
 from fingerps_driver.board.backoff import Backoff
 from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorControl
-from fingerps_driver.board.board_protocol import mask_to_indices
-from fingerps_driver.board.led_board import LedBoard
+from fingerps_driver.board.board_protocol import LED_COUNT, mask_to_indices
+from fingerps_driver.board.led_board import BAUDRATE, RETRIES, TIMEOUT_S, LedBoard
 from fingerps_driver.errors import (
     BoardError,
     BoardUnsupportedError,
@@ -68,10 +68,10 @@ class BoardSettings:
     """
 
     port: str = SIM_PORT
-    led_count: int = 7
-    baudrate: int = 115200
-    timeout_s: float = 0.05
-    retries: int = 2
+    led_count: int = LED_COUNT
+    baudrate: int = BAUDRATE
+    timeout_s: float = TIMEOUT_S
+    retries: int = RETRIES
     wait_for_port: bool = False
     backoff: Backoff = field(default_factory=lambda: Backoff(0.5, 5.0))
     control: str = ""

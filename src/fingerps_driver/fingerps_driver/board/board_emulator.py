@@ -39,6 +39,7 @@ from functools import partial
 from typing import Any, Self
 
 from fingerps_driver.board.board_protocol import (
+    LED_COUNT,
     MAX_LEDS,
     MAX_LEVEL,
     REQUEST_SIGIL,
@@ -127,7 +128,7 @@ class BoardEmulator(_Served):
 
     def __init__(
         self,
-        led_count: int = 7,
+        led_count: int = LED_COUNT,
         *,
         reply_delay_s: float = 0.0,
         slow_reply_s: float = 0.075,

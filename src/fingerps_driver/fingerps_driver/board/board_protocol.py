@@ -98,6 +98,8 @@ REQUEST_SIGIL = b"#"
 REPLY_SIGIL = b"!"
 MAX_LINE_BYTES = 255
 MAX_LEDS = 32
+LED_COUNT = 7
+"""LEDs of the rig's board (the firmware's, the emulator's and the driver's default)."""
 SEQ_MODULO = 256
 MAX_LEVEL = 255
 MAX_TRIGGER_US = 65535

@@ -69,6 +69,14 @@ class _RetryableError(Exception):
         self.error = error
 
 
+BAUDRATE = 115200
+"""The serial line's default speed (the firmware's)."""
+TIMEOUT_S = 0.05
+"""How long one attempt waits for its reply by default, seconds."""
+RETRIES = 2
+"""Resends after a lost, late or garbled reply by default."""
+
+
 class LedBoard(Device):
     """Client of the LED board on a serial port.
 
@@ -88,9 +96,9 @@ class LedBoard(Device):
         self,
         port: str,
         *,
-        baudrate: int = 115200,
-        timeout_s: float = 0.05,
-        retries: int = 2,
+        baudrate: int = BAUDRATE,
+        timeout_s: float = TIMEOUT_S,
+        retries: int = RETRIES,
     ) -> None:
         if timeout_s <= 0:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s}")

@@ -19,6 +19,7 @@ import numpy as np
 
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics
+from fingerps_driver.board.board_protocol import LED_COUNT
 from fingerps_driver.cameras.camera import Camera, SimulatedCamera
 from fingerps_driver.cameras.camera_folder import FolderCamera
 from fingerps_driver.cameras.camera_info_manager import CameraInfoManager
@@ -79,7 +80,7 @@ class CameraSettings:
     gain: float = -1.0
     discard_frames: int = 1
     exposure_s: float = 0.01
-    led_count: int = 7
+    led_count: int = LED_COUNT
     camera_name: str = "fingerps_sim"
     camera_info_url: str = ""
     camera_info_file: str = ""

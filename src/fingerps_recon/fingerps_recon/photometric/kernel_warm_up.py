@@ -43,7 +43,6 @@ _SIZE = 40          # synthetic image side, pixels
 _RADIUS = 16.0      # synthetic hemisphere radius, pixels
 _LEDS = 7
 _FOCAL = 3000.0
-_DISTANCE_M = 0.09
 
 
 @dataclass(frozen=True)
@@ -117,7 +116,7 @@ def _synthetic_burst() -> tuple[np.ndarray, ...]:
     """(images (K, S, S) uint8, lights (K, 3), LED positions (K, 3) m, K (3, 3), portions)."""
     angles = 2.0 * np.pi * np.arange(_LEDS) / _LEDS
     leds = np.stack([0.04 * np.cos(angles), 0.04 * np.sin(angles), np.zeros(_LEDS)], axis=1)
-    to_leds = np.array([0.0, 0.0, _DISTANCE_M]) - leds
+    to_leds = np.array([0.0, 0.0, ReconstructionOptions().working_distance_m]) - leds
     lights = to_leds / np.linalg.norm(to_leds, axis=1, keepdims=True)
     lights[:, 1:] *= -1.0  # optical -> PS frame
     c = (_SIZE - 1) / 2.0

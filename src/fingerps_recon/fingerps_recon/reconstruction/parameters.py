@@ -9,27 +9,23 @@ from rclpy.parameter import Parameter
 from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
 from fingerps_recon.photometric.kernel_threads import set_thread_limit
 from fingerps_recon.photometric.option_rows import (
+    ENHANCE,
     HK_ITERATIONS,
     MASK_THRESHOLD,
+    MODEL,
+    PROJECTION,
     RIDGE_GAIN,
     RIDGE_PATCH,
+    WORKING_DISTANCE,
 )
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.reconstruction.burst_intake import BurstLimits
 from fingerps_recon.reconstruction.worker import ReconSettings
-from fingerps_ros.parameter_table import ParameterRow, one_of
+from fingerps_ros.parameter_table import ParameterRow
 
 PARAMETERS = (
-    ParameterRow(
-        "model", Model.HK.value,
-        "Reflectance model of the normals: hk (the paper's simplified Hanrahan-Krueger "
-        "skin model, initialised from lambert) or lambert (Lambertian photometric "
-        "stereo)", check=one_of(*(m.value for m in Model))),
-    ParameterRow(
-        "projection", Projection.PERSPECTIVE.value,
-        "Camera model of the views, the integration and the points: perspective (from "
-        "the burst's camera_info) or orthographic",
-        check=one_of(*(p.value for p in Projection))),
+    MODEL,
+    PROJECTION,
     HK_ITERATIONS,
     ParameterRow(
         "threads", 0,
@@ -46,16 +42,10 @@ PARAMETERS = (
         "Also publish the rolled-equivalent 500 ppi print of every burst on 'fingerprint' "
         "(mono8, ridges dark; ~50 ms a burst on top of the reconstruction, so off by "
         "default; the Scan action always makes one)"),
-    ParameterRow(
-        "enhance", True,
-        "Publish the normal map after ridge enhancement (paper Eq. 12); the normals "
-        "topic always carries the unenhanced normals"),
+    ENHANCE,
     RIDGE_PATCH,
     RIDGE_GAIN,
-    ParameterRow(
-        "working_distance", 0.09,
-        "Camera-to-finger distance along the optical axis, metres (metric scale of "
-        "depth)", min_value=0.005, max_value=2.0),
+    WORKING_DISTANCE,
     MONO16_FULL_SCALE,
     ParameterRow(
         "max_image_width", BurstLimits.max_width,

@@ -13,20 +13,24 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from fingerps_recon.errors import ImpossibleGoalError
 from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
 from fingerps_recon.photometric.option_rows import (
+    ENHANCE,
     HK_ITERATIONS,
     MASK_THRESHOLD,
+    MODEL,
+    PROJECTION,
     RIDGE_GAIN,
     RIDGE_PATCH,
+    WORKING_DISTANCE,
 )
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.scan.quality import QualityThresholds
-from fingerps_ros.parameter_table import ParameterRow, one_of
+from fingerps_ros.parameter_table import ParameterRow
 
 MAX_BURSTS = 20
 
@@ -40,20 +44,14 @@ GOAL_PARAMETERS = (
 
 _T = QualityThresholds()
 SCAN_PARAMETERS: tuple[ParameterRow, ...] = (
-    ParameterRow("model", Model.HK.value,
-                 "Reflectance model: hk (the paper's skin model; the most accurate normals) "
-                 "or lambert (faster); a goal's model field overrides it",
-                 check=one_of(*(m.value for m in Model))),
-    ParameterRow("projection", Projection.PERSPECTIVE.value,
-                 "Camera model: perspective (the burst's camera_info) or orthographic",
-                 check=one_of(*(p.value for p in Projection))),
+    replace(MODEL, description=MODEL.description + "; a goal's model field overrides it"),
+    PROJECTION,
     HK_ITERATIONS,
     MASK_THRESHOLD,
-    ParameterRow("enhance", True, "Ridge enhancement (paper Eq. 12) of the normal map"),
+    ENHANCE,
     RIDGE_PATCH,
     RIDGE_GAIN,
-    ParameterRow("working_distance", 0.09,
-                 "Camera-to-finger distance, metres (metric scale of depth)", 0.005, 2.0),
+    WORKING_DISTANCE,
     MONO16_FULL_SCALE,
     ParameterRow("timeout", 30.0, "Seconds a goal may take when it gives timeout 0",
                  0.1, 3600.0),
