@@ -59,8 +59,7 @@ def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _sphere_images(rig: SimulatedRig, seed: int) -> np.ndarray:
-    return np.stack([rig.render(Scene.SPHERE, [k], rng=np.random.default_rng(seed + k))
-                     for k in range(rig.led_count)])
+    return rig.render_burst(Scene.SPHERE, seed=seed)
 
 
 def _lights(rows: list[tuple[str, str, np.ndarray, float]], apex: np.ndarray
@@ -113,8 +112,7 @@ def _lights(rows: list[tuple[str, str, np.ndarray, float]], apex: np.ndarray
 
 
 def _flat_field(rig: SimulatedRig) -> tuple[dict[str, float], object]:
-    white = np.stack([rig.render(Scene.WHITE_TARGET, [k], rng=np.random.default_rng(500 + k))
-                      for k in range(rig.led_count)])
+    white = rig.render_burst(Scene.WHITE_TARGET, seed=500)
     dark = rig.render(Scene.WHITE_TARGET, [], rng=np.random.default_rng(499))
     t0 = time.perf_counter()
     flat = flat_field_maps(white, dark=dark, saturation_level=rig.max_value())
@@ -138,7 +136,7 @@ def _flat_field(rig: SimulatedRig) -> tuple[dict[str, float], object]:
 def _normals(rig: SimulatedRig, flat, combined, single_ps: np.ndarray,
              axis_ps: np.ndarray) -> dict[str, float]:
     rng = np.random.default_rng(7)
-    images = np.stack([rig.render(Scene.FINGER, [k], rng=rng) for k in range(rig.led_count)])
+    images = rig.render_burst(Scene.FINGER, rng=rng)
     dark = rig.render(Scene.FINGER, [], rng=rng)
     truth = rig.finger_truth()
 

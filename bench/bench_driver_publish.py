@@ -29,6 +29,7 @@ from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import qos, topics
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # ros_domain
 from graph_harness import bench_node
 from ros_domain import domain_env, own_ros_domain
 

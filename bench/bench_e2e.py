@@ -112,7 +112,9 @@ from fingerps_driver.errors import DemoError
 from fingerps_ros.time_conversion import time_nanoseconds
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # ros_domain
 from figures_report import exit_codes, print_figures
+from polling import poll_until
 from ros_domain import domain_env, own_ros_domain
 
 DEMO_RUNS = 3
@@ -415,12 +417,14 @@ class Observer:
 
 def wait_until(condition: Callable[[], object], *, timeout: float, what: str,
                graph: Graph) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
+    """Poll ``condition`` (``polling.poll_until``) while the graph runs; BenchError after
+    ``timeout``, or at once if a node of the graph has exited."""
+    def holds() -> object:
         graph.check_running()
-        if time.monotonic() > deadline:
-            raise BenchError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.05)
+        return condition()
+
+    if not poll_until(holds, timeout):
+        raise BenchError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 @dataclass(frozen=True)

@@ -157,9 +157,7 @@ def posed_rig(identity: int, pose: Pose) -> SimulatedRig:
 def calibrations() -> dict[Model, PreparedCalibration]:
     """The prepared calibration per model (module docstring: true LEDs, white target)."""
     rig = SimulatedRig()
-    k = rig.led_count
-    white = np.stack([rig.render(Scene.WHITE_TARGET, [i], rng=np.random.default_rng(200 + i))
-                      for i in range(k)])
+    white = rig.render_burst(Scene.WHITE_TARGET, seed=200)
     dark = rig.render(Scene.WHITE_TARGET, [], rng=np.random.default_rng(199))
     flat = flat_field_maps(white, dark=dark)
     return {model: prepare_calibration(
@@ -326,10 +324,7 @@ def run() -> dict[str, float]:
             pose = draw_pose(identity, capture)
             t0 = time.perf_counter()
             rig = posed_rig(identity, pose)
-            images = np.stack([
-                rig.render(Scene.FINGER, [k], rng=np.random.default_rng(
-                    np.random.SeedSequence([SEED, identity, capture, k])))
-                for k in range(rig.led_count)])
+            images = rig.render_burst(Scene.FINGER, seed=[SEED, identity, capture])
             truth = rig.finger_truth()
             rolled_mm = truth.rolled_mm
             pattern = rig.fingerprint
@@ -399,10 +394,7 @@ def run_print_timing() -> dict[str, float]:
     for identity in range(IDENTITIES):
         for capture in range(CAPTURES):
             rig = posed_rig(identity, draw_pose(identity, capture))
-            images = np.stack([
-                rig.render(Scene.FINGER, [k], rng=np.random.default_rng(
-                    np.random.SeedSequence([SEED, identity, capture, k])))
-                for k in range(rig.led_count)])
+            images = rig.render_burst(Scene.FINGER, seed=[SEED, identity, capture])
             for model in MODELS:
                 options = ReconstructionOptions(model=model, enhance=True)
                 recon = reconstruct_prepared(images, prepared[model],

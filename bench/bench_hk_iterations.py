@@ -53,8 +53,7 @@ def run() -> dict[str, float]:
     truth = rig.finger_truth().normals_ps
     options = ReconstructionOptions(model=Model.HK)
     prepared = _node_calibration(rig, burst, options)
-    bursts = [np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(1000 * i + k))
-                        for k in range(rig.led_count)]) for i in range(BURSTS)]
+    bursts = [rig.render_burst(Scene.FINGER, seed=1000 * i) for i in range(BURSTS)]
 
     def solve(images: np.ndarray, held: float | None, **changes: float) -> object:
         return reconstruct_prepared(images, prepared, full_scale=burst.full_scale,

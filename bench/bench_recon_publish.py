@@ -65,6 +65,7 @@ from typing import TextIO
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # ros_domain
 from figures_report import parse_repeats
 from graph_harness import bench_node
 from ros_domain import domain_env, own_ros_domain

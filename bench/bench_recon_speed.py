@@ -178,10 +178,8 @@ class _Burst:
 
 def _burst(rig: SimulatedRig) -> _Burst:
     k = rig.led_count
-    images = np.stack([rig.render(Scene.FINGER, [i], rng=np.random.default_rng(10 + i))
-                       for i in range(k)])
-    white = np.stack([rig.render(Scene.WHITE_TARGET, [i], rng=np.random.default_rng(200 + i))
-                      for i in range(k)])
+    images = rig.render_burst(Scene.FINGER, seed=10)
+    white = rig.render_burst(Scene.WHITE_TARGET, seed=200)
     white_dark = rig.render(Scene.WHITE_TARGET, [], rng=np.random.default_rng(199))
     flat = flat_field_maps(white, dark=white_dark)
     points = np.nan_to_num(rig.finger_points_optical(), nan=WORKING_DISTANCE_M)

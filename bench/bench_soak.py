@@ -61,6 +61,7 @@ from fingerps_driver.demo import executable, stop_graph
 from fingerps_driver.errors import DemoError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # ros_domain
 import bench_e2e
 from bench_e2e import (
     BenchError,

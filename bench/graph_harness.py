@@ -5,10 +5,14 @@ process still runs."""
 from __future__ import annotations
 
 import subprocess
-import time
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TYPE_CHECKING
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # polling
+from polling import poll_until
 
 if TYPE_CHECKING:
     from rclpy.executors import SingleThreadedExecutor
@@ -26,13 +30,14 @@ class BenchNode:
     def spin_until(self, condition: Callable[[], object], what: str, timeout: float) -> None:
         """Spin (``period`` s at a time) until ``condition()`` is truthy; RuntimeError if the
         watched process exits or ``timeout`` s pass first."""
-        deadline = time.monotonic() + timeout
-        while not condition():
+        def step() -> object:
             if self.watched.poll() is not None:
                 raise RuntimeError(f"{self.watched_name} exited with {self.watched.returncode}")
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"timed out waiting for {what}")
             self.executor.spin_once(timeout_sec=self.period)
+            return condition()
+
+        if not condition() and not poll_until(step, timeout, interval_s=0.0):
+            raise RuntimeError(f"timed out waiting for {what}")
 
 
 @contextmanager

@@ -29,20 +29,19 @@
 
 from __future__ import annotations
 
-import fcntl
 import os
-import random
 import subprocess
 import sys
-import tempfile
 import threading
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
+from ros_domain import domain_env, own_ros_domain
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -52,36 +51,23 @@ if TYPE_CHECKING:
     from fingerps_driver.simulation import SimulatedRig
 
 INSTALL = Path(__file__).resolve().parents[1] / "install"
-DOMAIN_RANGE = range(40, 102)  # Fast DDS ports of ids above 101 can collide with ephemeral ports
 
 
 @pytest.fixture
 def ros_domain(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[int]:
-    """A ROS domain of this test's own, on localhost only; returns its id."""
-    lock_dir = Path(tempfile.gettempdir()) / "fingerps_ros_domains"
-    lock_dir.mkdir(exist_ok=True)
-    candidates = list(DOMAIN_RANGE)
-    random.shuffle(candidates)
-    for domain_id in candidates:
-        handle = open(lock_dir / f"{domain_id}.lock", "w")  # held until teardown
+    """A ROS domain of this test's own (``ros_domain.own_ros_domain``), on localhost only;
+    returns its id."""
+    with ExitStack() as stack:
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        break
-    else:
-        pytest.fail(f"every ROS domain id in {DOMAIN_RANGE} is held by another test run")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
-    monkeypatch.delenv("ROS_STATIC_PEERS", raising=False)
-    monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
-    try:
+            domain_id = stack.enter_context(own_ros_domain())
+        except RuntimeError as exc:
+            pytest.fail(str(exc))
+        for name, value in domain_env(domain_id, ROS_HOME=str(tmp_path / "ros_home")).items():
+            if os.environ.get(name) != value:
+                monkeypatch.setenv(name, value)
+        for name in ("ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY"):
+            monkeypatch.delenv(name, raising=False)
         yield domain_id
-    finally:
-        fcntl.flock(handle, fcntl.LOCK_UN)
-        handle.close()
 
 
 
@@ -135,8 +121,7 @@ def rig() -> SimulatedRig:
 def finger_images(rig: SimulatedRig) -> np.ndarray:
     """(K, H, W) uint8: the rig's finger under LED k alone, noise seeded with 30 + k."""
     from fingerps_driver.simulation import Scene
-    return np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(30 + k))
-                     for k in range(rig.led_count)])
+    return rig.render_burst(Scene.FINGER, seed=30)
 
 
 def _emulator_threads() -> list[threading.Thread]:

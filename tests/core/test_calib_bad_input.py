@@ -23,8 +23,7 @@ NODE_CHECKS = {"require_whole_sphere": True, "expected_distance_m": (0.063, 0.11
 
 
 def _render(rig: SimulatedRig, scene: Scene, seed: int = 0) -> np.ndarray:
-    return np.stack([rig.render(scene, [k], rng=np.random.default_rng(seed + k))
-                     for k in range(rig.led_count)])
+    return rig.render_burst(scene, seed=seed)
 
 
 @pytest.fixture(scope="module")

@@ -28,8 +28,7 @@ def rig() -> SimulatedRig:
 
 @pytest.fixture(scope="module")
 def sphere_images(rig) -> np.ndarray:
-    return np.stack([rig.render(Scene.SPHERE, [k], rng=np.random.default_rng(40 + k))
-                     for k in range(rig.led_count)])
+    return rig.render_burst(Scene.SPHERE, seed=40)
 
 
 def _folder(path: Path, images: np.ndarray, *, names: list[str] | None = None) -> Path:

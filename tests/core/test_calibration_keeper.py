@@ -68,8 +68,7 @@ def rig() -> SimulatedRig:
 
 
 def _render(rig: SimulatedRig, scene: Scene, seed: int) -> np.ndarray:
-    return np.stack([rig.render(scene, [k], rng=np.random.default_rng(seed + k))
-                     for k in range(rig.led_count)])
+    return rig.render_burst(scene, seed=seed)
 
 
 @pytest.fixture(scope="module")

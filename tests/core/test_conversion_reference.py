@@ -1,9 +1,13 @@
 """The conversions recon_node publishes with (frames, normal map, image and point-cloud
-messages) give exactly what their earlier, copy-heavier versions gave.
+messages) give exactly what the message definitions and the formulas say.
 
-The ``_reference_*`` functions below are those earlier versions, kept verbatim as the
-specification of the published contents: every message is compared field by field and as
-its CDR bytes (what a subscriber receives), and decoded back to arrays compared exactly.
+The ``_reference_*`` functions below are those definitions written out as plainly as
+possible, one step at a time: sensor_msgs/Image (rows of ``width * channels`` samples of
+the encoding's type, little-endian, ``step`` bytes apart), sensor_msgs/PointCloud2 (one
+record of float32 x, y, z, intensity at offsets 0, 4, 8, 12 per point, one row), the normal
+map rgb = clip((n + 1) * 127.5) (zero outside the mask) and the optical <-> PS frame change
+(y and z negated). Every message is compared with theirs field by field and as its CDR bytes
+(what a subscriber receives), and decoded back to arrays compared exactly.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ _FIELDS = ("x", "y", "z", "intensity")
 _DTYPE = np.dtype([(name, "<f4") for name in _FIELDS])
 
 
-# ------------------------------------------------------------------ the earlier versions
+# ------------------------------------------------------------------ the definitions
 def _reference_array_to_image(array: np.ndarray, *, encoding: str,
                               header: Header | None = None) -> Image:
     dtype, channels = _ENCODINGS[encoding]

@@ -82,8 +82,7 @@ def captures():
             rig = SimulatedRig(RigConfig(
                 finger_identity=identity, finger_roll_deg=roll, finger_yaw_deg=yaw,
                 finger_pitch_deg=pitch, finger_apex_optical_m=(x + dx * 1e-3, y + dy * 1e-3, z)))
-            images = np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(
-                [identity, n, k])) for k in range(rig.led_count)])
+            images = rig.render_burst(Scene.FINGER, seed=[identity, n])
             recon = reconstruct_prepared(images, prepared, full_scale=rig.max_value(),
                                          options=options)
             result = rolled_print(recon.depth_m, mask=recon.mask,

@@ -8,6 +8,7 @@ NIST NBIS (mindtct, bozorth3, NFIQ 2 through nbis-py) as the judge.
 from __future__ import annotations
 
 import cv2
+import nbis
 import numpy as np
 import pytest
 
@@ -173,7 +174,6 @@ def test_render_500ppi_ridges_dark_on_white(fingers):
 
 
 def test_nbis_mindtct_bozorth3_nfiq2_on_the_renders(fingers):
-    nbis = pytest.importorskip("nbis", reason="nbis-py (NIST NBIS bindings) not installed")
     extractor = nbis.new_nbis_extractor(nbis.NbisExtractorSettings(
         min_quality=0.0, get_center=False, check_fingerprint=False, compute_nfiq2=True,
         ppi=500.0,

@@ -313,10 +313,7 @@ def rig_finger() -> dict[str, object]:
     from fingerps_recon.photometric.finger_mask import finger_mask
 
     rig = SimulatedRig()
-    images = np.stack([
-        rig.render(Scene.FINGER, [i], rng=np.random.default_rng(10 + i))
-        for i in range(rig.led_count)
-    ]).astype(np.float32)
+    images = rig.render_burst(Scene.FINGER, seed=10).astype(np.float32)
     lights = rig.light_directions_ps()
     intensities = rig.light_intensities()
     shadow, saturated = 0.02 * rig.max_value(), float(rig.max_value())

@@ -67,13 +67,10 @@ def truth(rig: SimulatedRig) -> FingerTruth:
 
 @pytest.fixture(scope="module")
 def burst(rig: SimulatedRig) -> Burst:
-    k = range(rig.led_count)
     return Burst(
-        images=np.stack([rig.render(Scene.FINGER, [i], rng=np.random.default_rng(10 + i))
-                         for i in k]),
+        images=rig.render_burst(Scene.FINGER, seed=10),
         dark=rig.render(Scene.FINGER, [], rng=np.random.default_rng(9)),
-        white=np.stack([rig.render(Scene.WHITE_TARGET, [i], rng=np.random.default_rng(200 + i))
-                        for i in k]),
+        white=rig.render_burst(Scene.WHITE_TARGET, seed=200),
         white_dark=rig.render(Scene.WHITE_TARGET, [], rng=np.random.default_rng(199)),
     )
 

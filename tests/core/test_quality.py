@@ -55,7 +55,7 @@ def test_negative_thresholds_are_refused() -> None:
 def test_figures_of_a_simulated_reconstruction() -> None:
     rig = SimulatedRig(RigConfig())
     rng = np.random.default_rng(0)
-    images = np.stack([rig.render(Scene.FINGER, [k], rng=rng) for k in range(rig.led_count)])
+    images = rig.render_burst(Scene.FINGER, rng=rng)
     dark = rig.render(Scene.FINGER, [], rng=rng)
     rec = reconstruct(images, lights_ps=rig.light_directions_ps(),
                       camera_matrix=rig.camera_matrix, full_scale=255, dark=dark)

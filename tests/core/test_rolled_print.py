@@ -232,8 +232,7 @@ def rig_case() -> tuple[SimulatedRig, Reconstruction, np.ndarray]:
     same finger without ridges (positive on the crests)."""
     rig = SimulatedRig()
     truth = rig.finger_truth()
-    images = np.stack([rig.render(Scene.FINGER, [i], rng=np.random.default_rng(10 + i))
-                       for i in range(rig.led_count)])
+    images = rig.render_burst(Scene.FINGER, seed=10)
     recon = reconstruct(images, lights_ps=rig.light_directions_ps(),
                         camera_matrix=rig.camera_matrix, full_scale=255.0,
                         intensities=rig.light_intensities())

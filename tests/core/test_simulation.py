@@ -315,3 +315,20 @@ def test_bad_render_arguments_are_refused(rig):
         rig.render(Scene.FINGER, [1, 1], rng=rng)
     with pytest.raises(FingerpsDriverError):
         rig.render("finger", [1], rng=rng)
+
+
+def test_a_burst_is_one_frame_per_led_with_the_noise_seeded_as_said() -> None:
+    rig = SimulatedRig(RigConfig(width=64, height=48))
+    by_led = [rig.render(Scene.FINGER, [k], rng=np.random.default_rng(5 + k))
+              for k in range(rig.led_count)]
+    assert np.array_equal(rig.render_burst(Scene.FINGER, seed=5), np.stack(by_led))
+    by_led = [rig.render(Scene.FINGER, [k], rng=np.random.default_rng([3, 1, k]))
+              for k in range(rig.led_count)]
+    assert np.array_equal(rig.render_burst(Scene.FINGER, seed=[3, 1]), np.stack(by_led))
+    shared = np.random.default_rng(9)
+    by_led = [rig.render(Scene.FINGER, [k], rng=shared) for k in range(rig.led_count)]
+    assert np.array_equal(rig.render_burst(Scene.FINGER, rng=np.random.default_rng(9)),
+                          np.stack(by_led))
+    for seed, rng in ((None, None), (1, np.random.default_rng(1))):
+        with pytest.raises(ValueError, match="one of seed and rng"):
+            rig.render_burst(Scene.FINGER, seed=seed, rng=rng)

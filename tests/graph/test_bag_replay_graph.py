@@ -46,8 +46,7 @@ T0 = 1_700_000_000_000_000_000
 
 def _burst(rig_messages, burst_id: int) -> Burst:
     rig = rig_messages.rig
-    images = np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(50 * burst_id + k))
-                       for k in range(rig.led_count)])
+    images = rig.render_burst(Scene.FINGER, seed=50 * burst_id)
     return rig_messages.burst(images, burst_id, nanosec=0)
 
 

@@ -48,8 +48,7 @@ def _frames(images: np.ndarray) -> list[TaggedFrame]:
 
 
 def _render(rig: SimulatedRig, scene: Scene) -> list[TaggedFrame]:
-    return _frames(np.stack([rig.render(scene, [k], rng=np.random.default_rng(k))
-                             for k in range(rig.led_count)]))
+    return _frames(rig.render_burst(scene, seed=0))
 
 
 def _blank(rig: SimulatedRig, size: int) -> list[TaggedFrame]:

@@ -47,8 +47,7 @@ def _frames(images: np.ndarray, *, dark: np.ndarray | None = None) -> list[Tagge
 
 
 def _render(rig: SimulatedRig, scene: Scene, seed: int) -> np.ndarray:
-    return np.stack([rig.render(scene, [k], rng=np.random.default_rng(seed + k))
-                     for k in range(rig.led_count)])
+    return rig.render_burst(scene, seed=seed)
 
 
 def _sphere(place: str, seed: int = 0, **config) -> np.ndarray:

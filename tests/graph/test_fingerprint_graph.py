@@ -34,8 +34,7 @@ def rig() -> SimulatedRig:
 
 
 def _images(rig: SimulatedRig, seed: int, mask: np.ndarray | None = None) -> np.ndarray:
-    images = np.stack([rig.render(Scene.FINGER, [k], rng=np.random.default_rng(seed + k))
-                       for k in range(rig.led_count)])
+    images = rig.render_burst(Scene.FINGER, seed=seed)
     if mask is not None:  # only a small patch of the finger in view
         images = np.where(mask, images, images.min())
     return images

@@ -58,8 +58,7 @@ def truth(rig: SimulatedRig) -> FingerTruth:
 
 @pytest.fixture(scope="module")
 def empty_images(rig: SimulatedRig) -> np.ndarray:
-    return np.stack([rig.render(Scene.EMPTY, [k], rng=np.random.default_rng(40 + k))
-                     for k in range(rig.led_count)])
+    return rig.render_burst(Scene.EMPTY, seed=40)
 
 
 def _diagnostic_values(arrays: list[DiagnosticArray]) -> list[dict[str, str]]:

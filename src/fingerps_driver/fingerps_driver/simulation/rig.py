@@ -542,6 +542,24 @@ class SimulatedRig:
             self.noiseless(scene, lit, finger_shift_px=finger_shift_px), rng=rng
         )
 
+    def render_burst(self, scene: Scene, *, seed: int | Sequence[int] | None = None,
+                     rng: np.random.Generator | None = None) -> np.ndarray:
+        """A burst: one frame per LED, each LED lit alone, in LED order, (K, H, W).
+
+        The noise of LED k comes from ``np.random.default_rng(seed + k)`` for an int
+        ``seed``, ``np.random.default_rng([*seed, k])`` for a sequence, or from ``rng``
+        drawn in LED order (give one of ``seed`` and ``rng``)."""
+        if (seed is None) == (rng is None):
+            raise ValueError("give one of seed and rng")
+        if rng is not None:
+            streams = [rng] * self.led_count
+        elif isinstance(seed, int):
+            streams = [np.random.default_rng(seed + k) for k in range(self.led_count)]
+        else:
+            streams = [np.random.default_rng([*seed, k]) for k in range(self.led_count)]
+        return np.stack([self.render(scene, [k], rng=stream)
+                         for k, stream in enumerate(streams)])
+
     # ----------------------------------------------------------------- internals
 
     def _check(self, scene: Scene, lit: Sequence[int]) -> list[int]:

@@ -1,6 +1,7 @@
-"""A ROS domain of a benchmark's own: an id that no concurrent graph test or benchmark on
-this machine holds (the lock files the ``ros_domain`` fixture of tests/conftest.py takes
-too), and the environment of a process in it (``domain_env``)."""
+"""A ROS domain of one's own, for the graph tests (the ``ros_domain`` fixture of
+tests/conftest.py) and the benchmarks (bench/ puts this folder on its path): an id that no
+concurrent test or benchmark on this machine holds (a lock file each), and the environment
+of a process in it (``domain_env``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-DOMAIN_RANGE = range(40, 102)  # as tests/conftest.py: Fast DDS ports of ids above 101 collide
+DOMAIN_RANGE = range(40, 102)  # Fast DDS ports of ids above 101 can collide with ephemeral ports
 
 
 @contextmanager
