@@ -14,7 +14,9 @@ import pytest
 from led_history import masks_lit_since, repeats_since
 from polling import poll_until
 
-from fingerps_driver.board.board_emulator import BoardEmulatorControl, EmulatorControlServer, Fault
+from fingerps_driver.board.board_emulator import Fault
+from fingerps_driver.board.emulator_control import EmulatorControlServer
+from fingerps_driver.board.emulator_control_client import BoardEmulatorControl
 from fingerps_driver.board.led_board import LedBoard
 from fingerps_driver.cameras.camera import SimulatedCamera
 from fingerps_driver.capture.burst import BurstStep, capture_burst

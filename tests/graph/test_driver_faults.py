@@ -17,7 +17,8 @@ from led_history import masks_lit_since
 from led_images import led_references, leds_seen
 from rclpy.node import Node
 
-from fingerps_driver.board.board_emulator import BoardEmulatorControl, Fault
+from fingerps_driver.board.board_emulator import Fault
+from fingerps_driver.board.emulator_control_client import BoardEmulatorControl
 from fingerps_msgs.msg import Burst
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import qos, topics

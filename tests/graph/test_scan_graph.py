@@ -17,7 +17,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
-from fingerps_driver.board.board_emulator import BoardEmulatorControl
+from fingerps_driver.board.emulator_control_client import BoardEmulatorControl
 from fingerps_driver.demo import SPHERE_PLACEMENTS
 from fingerps_driver.simulation import RigConfig, SimulatedRig
 from fingerps_msgs.action import Scan

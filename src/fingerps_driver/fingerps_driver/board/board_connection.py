@@ -19,8 +19,9 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 from fingerps_driver.board.backoff import Backoff
-from fingerps_driver.board.board_emulator import BoardEmulator, BoardEmulatorControl
+from fingerps_driver.board.board_emulator import BoardEmulator
 from fingerps_driver.board.board_protocol import LED_COUNT, mask_to_indices
+from fingerps_driver.board.emulator_control_client import BoardEmulatorControl
 from fingerps_driver.board.led_board import BAUDRATE, RETRIES, TIMEOUT_S, LedBoard
 from fingerps_driver.errors import (
     BoardError,

@@ -5,10 +5,9 @@ The emulator opens a pty pair (``os.openpty``), sets it raw and serves the proto
 client opens the slave device (``port``) with pyserial exactly as it would open the real
 board. Faults can be injected to test the client's recovery.
 
-Remote control: ``EmulatorControlServer`` serves a small line protocol on a UNIX socket
-(``board_emulator --control PATH``) so that another process (a test, a simulated camera)
-can inject faults, cut the power and read what the board has physically lit;
-``BoardEmulatorControl`` is its client. The serial port stays the only way to switch LEDs.
+Remote control: ``board_emulator --control PATH`` also serves the emulator's control
+channel (``emulator_control.EmulatorControlServer``; its client is
+``emulator_control_client.BoardEmulatorControl``).
 
 Port paths: every pty (at ``start()`` and at each ``reconnect()``) gets a new kernel
 device ``/dev/pts/<n>``, usually with a different number. Give ``link_path=`` to have a
@@ -22,21 +21,15 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
-import json
 import os
 import select
-import selectors
 import signal
-import socket
-import stat
 import sys
 import threading
 import time
 import tty
-from abc import ABC, abstractmethod
 from enum import Enum
 from functools import partial
-from typing import Any, Self
 
 from fingerps_driver.board.board_protocol import (
     LED_COUNT,
@@ -53,6 +46,7 @@ from fingerps_driver.board.board_protocol import (
     mask_to_indices,
 )
 from fingerps_driver.board.frame_reader import POLL_S, FrameReader
+from fingerps_driver.board.served import Served
 from fingerps_driver.errors import BoardEmulatorError, FingerpsDriverError, ProtocolError
 
 DEFAULT_LINK_PATH = "/tmp/fingerps_board"
@@ -79,26 +73,7 @@ class Fault(Enum):
     SLOW_REPLY = "slow_reply"  # the reply leaves ``slow_reply_s`` late
 
 
-class _Served(ABC):
-    """Served by a background thread between ``start`` and ``stop``; ``with`` does both."""
-
-    @abstractmethod
-    def start(self) -> None:
-        """Start serving."""
-
-    @abstractmethod
-    def stop(self) -> None:
-        """Stop serving. Safe to call twice."""
-
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.stop()
-
-
-class BoardEmulator(_Served):
+class BoardEmulator(Served):
     """The LED board, emulated on a pseudo-terminal served by a background thread.
 
     The lifecycle methods (start, stop, disconnect, reconnect, inject) are serialised by a
@@ -461,322 +436,6 @@ class BoardEmulator(_Served):
             return Reply(seq, (format_mask(mask),))
 
 
-# -- remote control ---------------------------------------------------------------------
-
-CONTROL_COMMANDS = {
-    "ping": "answer true",
-    "lit": "mask of the LEDs lit now (int)",
-    "state": "mask, lit LEDs, levels, trigger, connected, device, port, requests, "
-             "pending faults",
-    "history [N]": "the last N (default all) switches as [[time.monotonic(), mask], ...]",
-    "inject FAULT [COUNT] [after N]": "FAULT: drop_reply, corrupt_byte, slow_reply, disconnect",
-    "clear": "forget the faults not yet struck",
-    "disconnect": "pull the cable now",
-    "reconnect": "plug it back in (a new pty behind the link)",
-    "help": "the commands",
-}
-"""Commands of the control channel (one a line) and what they answer."""
-
-_MAX_CONTROL_LINE = 1024
-
-
-class EmulatorControlServer(_Served):
-    """Serves the control channel of a ``BoardEmulator`` on a UNIX stream socket.
-
-    Line protocol: the client sends one command a line (``CONTROL_COMMANDS``, words
-    separated by blanks, case-insensitive); the server answers each with one JSON line,
-    ``{"ok": true, "result": ...}`` or ``{"ok": false, "error": "..."}``. Several clients
-    may stay connected; one thread serves them all, so the emulator's lifecycle methods
-    are only ever called from that thread. Try it by hand with
-    ``socat - UNIX-CONNECT:PATH``.
-
-    Parameters
-    ----------
-    emulator : BoardEmulator
-        The started emulator to control.
-    path : str
-        Socket path. A stale socket there is replaced; any other existing file is an error.
-    """
-
-    def __init__(self, emulator: BoardEmulator, path: str) -> None:
-        self._emulator = emulator
-        self._path = path
-        self._listener: socket.socket | None = None
-        self._thread: threading.Thread | None = None
-        self._wake: tuple[int, int] | None = None
-
-    @property
-    def path(self) -> str:
-        return self._path
-
-    def start(self) -> None:
-        """Bind the socket and start serving. Raises ``BoardEmulatorError`` if it cannot."""
-        if self._thread is not None:
-            raise BoardEmulatorError("control server already started")
-        if os.path.lexists(self._path):
-            if not stat.S_ISSOCK(os.lstat(self._path).st_mode):
-                raise BoardEmulatorError(
-                    f"{self._path} exists and is not a socket; remove it or choose another "
-                    "control path")
-            os.unlink(self._path)
-        listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            listener.bind(self._path)
-            listener.listen(8)
-        except OSError as exc:
-            listener.close()
-            raise BoardEmulatorError(f"cannot serve the control socket {self._path}: {exc}") \
-                from exc
-        listener.setblocking(False)
-        self._listener = listener
-        self._wake = os.pipe()
-        self._thread = threading.Thread(target=self._serve, name="board-emulator-control")
-        self._thread.start()
-
-    def stop(self) -> None:
-        """Stop serving, close every connection and remove the socket. Safe to call twice."""
-        if self._thread is not None:
-            assert self._wake is not None
-            os.write(self._wake[1], b"x")
-            self._thread.join()
-            self._thread = None
-        if self._wake is not None:
-            for fd in self._wake:
-                os.close(fd)
-            self._wake = None
-        if self._listener is not None:
-            self._listener.close()
-            self._listener = None
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(self._path)
-
-    def _serve(self) -> None:
-        assert self._listener is not None and self._wake is not None
-        buffers: dict[socket.socket, bytearray] = {}
-        with selectors.DefaultSelector() as selector:
-            selector.register(self._listener, selectors.EVENT_READ)
-            selector.register(self._wake[0], selectors.EVENT_READ)
-            try:
-                while True:
-                    for key, _ in selector.select():
-                        if key.fileobj == self._wake[0]:
-                            return
-                        if key.fileobj is self._listener:
-                            with contextlib.suppress(BlockingIOError):
-                                conn, _ = self._listener.accept()
-                                conn.setblocking(True)
-                                conn.settimeout(1.0)  # a client that never reads is dropped
-                                buffers[conn] = bytearray()
-                                selector.register(conn, selectors.EVENT_READ)
-                            continue
-                        conn = key.fileobj
-                        assert isinstance(conn, socket.socket)
-                        if not self._serve_client(conn, buffers[conn]):
-                            selector.unregister(conn)
-                            del buffers[conn]
-                            conn.close()
-            finally:
-                for conn in buffers:
-                    conn.close()
-
-    def _serve_client(self, conn: socket.socket, buffer: bytearray) -> bool:
-        """Read what the client sent, answer complete lines; False when it is gone."""
-        try:
-            data = conn.recv(4096)
-        except OSError:
-            return False
-        if not data:
-            return False
-        buffer.extend(data)
-        while b"\n" in buffer:
-            line, _, rest = bytes(buffer).partition(b"\n")
-            buffer[:] = rest
-            answer = self.execute(line.decode("utf-8", errors="replace"))
-            try:
-                conn.sendall(json.dumps(answer).encode("ascii") + b"\n")
-            except OSError:
-                return False
-        return len(buffer) <= _MAX_CONTROL_LINE
-
-    def execute(self, line: str) -> dict[str, Any]:
-        """Run one command line; return the answer object (never raises)."""
-        words = line.strip().lower().split()
-        if not words:
-            return {"ok": False, "error": "empty command; send 'help'"}
-        try:
-            return {"ok": True, "result": self._run(words[0], words[1:])}
-        except (BoardEmulatorError, ValueError, OSError) as exc:
-            return {"ok": False, "error": str(exc)}
-        except Exception as exc:  # the control thread must survive any command
-            return {"ok": False, "error": f"{' '.join(words)!r} failed: "
-                                          f"{type(exc).__name__}: {exc}"}
-
-    def _run(self, command: str, args: list[str]) -> object:
-        emu = self._emulator
-        if command == "ping" and not args:
-            return True
-        if command == "lit" and not args:
-            return emu.lit_mask
-        if command == "state" and not args:
-            return {"mask": emu.lit_mask, "lit": list(emu.lit_leds()),
-                    "levels": list(emu.levels), "trigger": list(emu.trigger),
-                    "connected": emu.connected,
-                    "device": emu.device, "port": emu.port, "requests": emu.request_count,
-                    "pending_faults": emu.pending_faults}
-        if command == "history" and len(args) <= 1:
-            history = emu.history
-            if args:
-                history = history[-int(args[0]):] if int(args[0]) > 0 else []
-            return [[t, mask] for t, mask in history]
-        if command == "inject" and 1 <= len(args) <= 4:
-            return self._inject(args)
-        if command == "clear" and not args:
-            emu.clear_faults()
-            return True
-        if command == "disconnect" and not args:
-            emu.disconnect()
-            return True
-        if command == "reconnect" and not args:
-            emu.reconnect()
-            return True
-        if command == "help" and not args:
-            return CONTROL_COMMANDS
-        raise ValueError(f"unknown command {' '.join([command, *args])!r}; send 'help'")
-
-    def _inject(self, args: list[str]) -> list[str]:
-        names = {f.value: f for f in Fault}
-        if args[0] not in names:
-            raise ValueError(f"unknown fault {args[0]!r}; one of {', '.join(names)}")
-        rest = args[1:]
-        after = 0
-        if len(rest) >= 2 and rest[-2] == "after":
-            after = int(rest[-1])
-            rest = rest[:-2]
-        if len(rest) > 1:
-            raise ValueError("usage: inject FAULT [COUNT] [after N]")
-        self._emulator.inject(names[args[0]], int(rest[0]) if rest else 1, after=after)
-        return self._emulator.pending_faults
-
-
-class BoardEmulatorControl:
-    """Client of an ``EmulatorControlServer`` (``board_emulator --control PATH``).
-
-    Connects on first use and again after a failure (the emulator may have been
-    restarted). Safe to use from several threads. Every failure to reach the emulator or
-    a refused command raises ``BoardEmulatorError``.
-
-    Parameters
-    ----------
-    path : str
-        The control socket.
-    timeout_s : float
-        How long one command may take.
-    """
-
-    def __init__(self, path: str, *, timeout_s: float = 2.0) -> None:
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
-        self._path = path
-        self._timeout_s = timeout_s
-        self._sock: socket.socket | None = None
-        self._reader: Any = None
-        self._lock = threading.Lock()
-
-    @property
-    def path(self) -> str:
-        return self._path
-
-    def close(self) -> None:
-        """Close the connection. Safe to call twice."""
-        with self._lock:
-            self._close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
-    def command(self, line: str) -> Any:
-        """Send one command line; return its result."""
-        with self._lock:
-            for attempt in range(2):
-                try:
-                    if self._sock is None:
-                        self._connect()
-                    assert self._sock is not None
-                    self._sock.sendall(line.strip().encode("ascii") + b"\n")
-                    raw = self._reader.readline(1 << 22)
-                    if not raw.endswith(b"\n"):
-                        raise ConnectionError("the emulator closed the control connection")
-                    break
-                except (OSError, ValueError) as exc:
-                    self._close()
-                    if attempt:
-                        raise BoardEmulatorError(
-                            f"cannot reach the board emulator's control socket {self._path} "
-                            f"({exc}); start `board_emulator --control {self._path}`") from exc
-        answer = json.loads(raw)
-        if not answer.get("ok"):
-            raise BoardEmulatorError(f"board emulator refused {line.strip()!r}: "
-                                     f"{answer.get('error')}")
-        return answer.get("result")
-
-    def ping(self) -> bool:
-        return bool(self.command("ping"))
-
-    def lit_mask(self) -> int:
-        """Mask of the LEDs physically lit now."""
-        return int(self.command("lit"))
-
-    def lit_leds(self) -> tuple[int, ...]:
-        """Indices of the LEDs physically lit now, ascending."""
-        return mask_to_indices(self.lit_mask())
-
-    def state(self) -> dict[str, Any]:
-        return dict(self.command("state"))
-
-    def history(self, last: int | None = None) -> list[tuple[float, int]]:
-        """(time.monotonic(), mask) of the last switches; monotonic time is system-wide."""
-        result = self.command("history" if last is None else f"history {int(last)}")
-        return [(float(t), int(mask)) for t, mask in result]
-
-    def inject(self, fault: Fault | str, count: int = 1, *, after: int = 0) -> list[str]:
-        """As ``BoardEmulator.inject``; returns the pending faults."""
-        name = fault.value if isinstance(fault, Fault) else str(fault).lower()
-        return list(self.command(f"inject {name} {int(count)} after {int(after)}"))
-
-    def clear_faults(self) -> None:
-        self.command("clear")
-
-    def disconnect(self) -> None:
-        self.command("disconnect")
-
-    def reconnect(self) -> None:
-        self.command("reconnect")
-
-    def _connect(self) -> None:
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        sock.settimeout(self._timeout_s)
-        try:
-            sock.connect(self._path)
-        except OSError:
-            sock.close()
-            raise
-        self._sock = sock
-        self._reader = sock.makefile("rb")
-
-    def _close(self) -> None:
-        if self._reader is not None:
-            with contextlib.suppress(OSError):
-                self._reader.close()
-            self._reader = None
-        if self._sock is not None:
-            with contextlib.suppress(OSError):
-                self._sock.close()
-            self._sock = None
-
-
 def main(argv: list[str] | None = None) -> int:
     """Console script ``board_emulator``: serve a board on a pty until SIGINT/SIGTERM."""
     parser = argparse.ArgumentParser(
@@ -794,6 +453,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="serve the control channel on this UNIX socket: inject faults, "
                              "disconnect, read the lit LEDs (send 'help')")
     options = parser.parse_args(argv)
+    from fingerps_driver.board.emulator_control import EmulatorControlServer  # needs this module
+
 
     stop = threading.Event()
 
@@ -824,4 +485,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # The module itself, not this __main__ copy: the control channel (emulator_control)
+    # imports it, and its Fault and BoardEmulator must be the ones the command serves.
+    from fingerps_driver.board import board_emulator
+
+    sys.exit(board_emulator.main())
