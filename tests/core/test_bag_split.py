@@ -21,10 +21,12 @@ from std_msgs.msg import String
 from fingerps_recon.errors import BagRecoveryError, SessionBagError
 from fingerps_recon.sessions.bag_reader import SessionBagReader
 from fingerps_recon.sessions.bag_recovery import bag_pieces, recover_bag
+from fingerps_recon.sessions.rosbag2_qos import qos_profiles_yaml
 from fingerps_recon.sessions.sequence_gaps import SequenceGaps
-from fingerps_recon.sessions.session_bag import NS_PER_S, SessionBagWriter, qos_profiles_yaml
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 from fingerps_recon.sessions.session_retention import enforce_limit, stored_sessions
 from fingerps_ros import qos
+from fingerps_ros.time_conversion import NS_PER_S
 
 T0 = 1_700_000_000_000_000_000
 TOPIC = "/fingerps/chatter"

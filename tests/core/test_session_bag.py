@@ -34,12 +34,8 @@ from fingerps_recon.sessions.message_definition import (
     message_definition,
     type_description_hash,
 )
-from fingerps_recon.sessions.session_bag import (
-    INT64_MAX,
-    QosProfileFields,
-    SessionBagWriter,
-    qos_profiles_yaml,
-)
+from fingerps_recon.sessions.rosbag2_qos import QosProfileFields, qos_profiles_yaml
+from fingerps_recon.sessions.session_bag import INT64_MAX, SessionBagWriter
 from fingerps_ros import qos
 
 T0 = 1_700_000_000_000_000_000

@@ -22,7 +22,8 @@ from std_msgs.msg import String
 
 from fingerps_recon.errors import RecorderError, SessionBagError
 from fingerps_recon.sessions.bag_reader import SessionBagReader
-from fingerps_recon.sessions.session_bag import QosProfileFields, SessionBagWriter
+from fingerps_recon.sessions.rosbag2_qos import QosProfileFields
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 from fingerps_recon.sessions.session_metadata import (
     default_session_name,
     parameters_record,

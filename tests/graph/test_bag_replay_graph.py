@@ -30,11 +30,8 @@ from fingerps_recon.photometric.pipeline import (
 )
 from fingerps_recon.sessions.bag_reader import SessionBagReader
 from fingerps_recon.sessions.message_definition import MessageDefinition, load_message_definition
-from fingerps_recon.sessions.session_bag import (
-    QosProfileFields,
-    SessionBagWriter,
-    qos_profiles_yaml,
-)
+from fingerps_recon.sessions.rosbag2_qos import QosProfileFields, qos_profiles_yaml
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 from fingerps_ros import qos, topics
 from fingerps_ros.image_conversion import image_to_array
 

@@ -48,12 +48,8 @@ from rclpy.utilities import get_rmw_implementation_identifier
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.sessions.bag_reader import message_class
 from fingerps_recon.sessions.message_definition import load_message_definition
-from fingerps_recon.sessions.session_bag import (
-    DEFAULT_CHUNK_SIZE,
-    NS_PER_S,
-    QosProfileFields,
-    SessionBagWriter,
-)
+from fingerps_recon.sessions.rosbag2_qos import QosProfileFields
+from fingerps_recon.sessions.session_bag import DEFAULT_CHUNK_SIZE, SessionBagWriter
 from fingerps_recon.sessions.session_metadata import (
     default_session_name,
     parameters_record,
@@ -73,6 +69,7 @@ from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher, key_values
 from fingerps_ros.node_runner import run_node
 from fingerps_ros.parameter_table import ParameterRow
 from fingerps_ros.parameters import declare_parameters
+from fingerps_ros.time_conversion import NS_PER_S
 
 
 def recorder_parameters(resolve: Callable[[str], str]) -> tuple[ParameterRow, ...]:

@@ -48,7 +48,6 @@ in time as well.
 from __future__ import annotations
 
 import os
-import re
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -65,6 +64,7 @@ from fingerps_recon.sessions.message_definition import (
     load_message_definition,
     type_description_hash,
 )
+from fingerps_recon.sessions.rosbag2_yaml import yaml_lines
 from fingerps_recon.sessions.zstd_level import use_zstd_level
 
 METADATA_FILENAME = "metadata.yaml"
@@ -76,7 +76,6 @@ ROSBAG2_METADATA_RECORD = "rosbag2"
 DEFAULT_CHUNK_SIZE = 4 * 1024 * 1024
 """Bytes of messages per chunk: the most a killed recorder loses, and the compression unit."""
 
-NS_PER_S = 1_000_000_000
 INT64_MAX = 2**63 - 1
 """rosbag2's starting_time of a bag without messages; also RMW_DURATION_INFINITE in ns."""
 
@@ -94,176 +93,6 @@ _MCAP_COMPRESSION = {
     Compression.LZ4: CompressionType.LZ4,
     Compression.NONE: CompressionType.NONE,
 }
-
-# rmw enum values -> rmw_qos_*_policy_to_str() names (rmw/qos_string_conversions.h).
-_HISTORY = {0: "system_default", 1: "keep_last", 2: "keep_all", 3: "unknown"}
-_RELIABILITY = {0: "system_default", 1: "reliable", 2: "best_effort", 3: "unknown",
-                4: "best_available"}
-_DURABILITY = {0: "system_default", 1: "transient_local", 2: "volatile", 3: "unknown",
-               4: "best_available"}
-_LIVELINESS = {0: "system_default", 1: "automatic", 3: "manual_by_topic", 4: "unknown",
-               5: "best_available"}
-
-
-def _policy_name(value: Any, names: dict[int, str], policy: str) -> str:
-    if isinstance(value, str):
-        if value not in names.values():
-            raise SessionBagError(
-                f"QoS {policy} {value!r} unknown; use one of {sorted(set(names.values()))}")
-        return value
-    try:
-        return names[int(value)]
-    except (KeyError, TypeError, ValueError):
-        raise SessionBagError(
-            f"QoS {policy} value {value!r} unknown; use one of {sorted(names)} "
-            f"({', '.join(names.values())})") from None
-
-
-def _nanoseconds(value: Any) -> int:
-    """Nanoseconds of an int or of an rclpy Duration-like object (``.nanoseconds``)."""
-    return int(getattr(value, "nanoseconds", value))
-
-
-@dataclass(frozen=True)
-class QosProfileFields:
-    """One QoS profile as plain fields (no rclpy), for the rosbag2 YAML.
-
-    Policies are rmw's lower-case names (``"keep_last"``, ``"reliable"``,
-    ``"transient_local"``, ``"automatic"``, ...); durations are integer nanoseconds
-    (0: the rmw default; `INT64_MAX`: infinite).
-    """
-
-    history: str = "keep_last"
-    depth: int = 10
-    reliability: str = "reliable"
-    durability: str = "volatile"
-    deadline_ns: int = 0
-    lifespan_ns: int = 0
-    liveliness: str = "system_default"
-    liveliness_lease_duration_ns: int = 0
-    avoid_ros_namespace_conventions: bool = False
-
-    def __post_init__(self) -> None:
-        _policy_name(self.history, _HISTORY, "history")
-        _policy_name(self.reliability, _RELIABILITY, "reliability")
-        _policy_name(self.durability, _DURABILITY, "durability")
-        _policy_name(self.liveliness, _LIVELINESS, "liveliness")
-        if self.depth < 0 or min(self.deadline_ns, self.lifespan_ns,
-                                 self.liveliness_lease_duration_ns) < 0:
-            raise SessionBagError("QoS depth and durations must not be negative")
-
-    @classmethod
-    def from_profile(cls, profile: Any) -> QosProfileFields:
-        """Copy an rclpy ``QoSProfile`` (or anything with its attribute names) into fields.
-
-        Policies may be the rclpy enums (their integer values are rmw's), ints or names;
-        durations ``rclpy.duration.Duration`` (``.nanoseconds``) or int nanoseconds.
-        """
-        if isinstance(profile, QosProfileFields):
-            return profile
-        return cls(
-            history=_policy_name(profile.history, _HISTORY, "history"),
-            depth=int(profile.depth),
-            reliability=_policy_name(profile.reliability, _RELIABILITY, "reliability"),
-            durability=_policy_name(profile.durability, _DURABILITY, "durability"),
-            deadline_ns=_nanoseconds(profile.deadline),
-            lifespan_ns=_nanoseconds(profile.lifespan),
-            liveliness=_policy_name(profile.liveliness, _LIVELINESS, "liveliness"),
-            liveliness_lease_duration_ns=_nanoseconds(profile.liveliness_lease_duration),
-            avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions),
-        )
-
-    def to_yaml_node(self) -> dict[str, Any]:
-        """The mapping rosbag2 (metadata version 9) writes for one profile, in its key order."""
-        return {
-            "history": self.history,
-            "depth": self.depth,
-            "reliability": self.reliability,
-            "durability": self.durability,
-            "deadline": _rmw_time(self.deadline_ns),
-            "lifespan": _rmw_time(self.lifespan_ns),
-            "liveliness": self.liveliness,
-            "liveliness_lease_duration": _rmw_time(self.liveliness_lease_duration_ns),
-            "avoid_ros_namespace_conventions": self.avoid_ros_namespace_conventions,
-        }
-
-
-def _rmw_time(ns: int) -> dict[str, int]:
-    sec, nsec = divmod(int(ns), NS_PER_S)
-    return {"sec": sec, "nsec": nsec}
-
-
-def qos_profiles_yaml(profiles: Any) -> str:
-    """The ``offered_qos_profiles`` string rosbag2 Jazzy writes into an MCAP channel.
-
-    It is ``YAML::Dump`` of the list of profiles (rosbag2_storage
-    ``serialize_rclcpp_qos_vector``, version 9: policies as names, durations as
-    ``{sec, nsec}``), without a final newline; ``"[]"`` for no profile.
-
-    Parameters
-    ----------
-    profiles : QosProfileFields or QoSProfile-like, or an iterable of them
-        The offered profiles (an rclpy ``QoSProfile`` is accepted as is, through
-        `QosProfileFields.from_profile`).
-
-    Returns
-    -------
-    str
-        For example ``"- history: keep_last\\n  depth: 1\\n  reliability: reliable\\n..."``.
-    """
-    if isinstance(profiles, QosProfileFields) or hasattr(profiles, "reliability"):
-        profiles = [profiles]
-    nodes = [QosProfileFields.from_profile(p).to_yaml_node() for p in profiles]
-    return "\n".join(_yaml_lines(nodes, 0))
-
-
-# ---- YAML as yaml-cpp emits it (block style, 2-space indent, sequences indented) ----------
-
-_PLAIN = re.compile(r"[A-Za-z0-9_/][A-Za-z0-9_./-]*")
-
-
-def _yaml_scalar(value: Any) -> str:
-    if value is None:
-        return "~"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, dict):
-        return "{}"
-    if isinstance(value, list):
-        return "[]"
-    text = str(value)
-    if _PLAIN.fullmatch(text) and yaml.safe_load(text) == text:
-        return text
-    # A double-quoted JSON string is a valid YAML double-quoted scalar.
-    escaped = text.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
-    escaped = escaped.replace("\t", "\\t").replace("\r", "\\r")
-    return f'"{escaped}"'
-
-
-def _yaml_lines(value: Any, indent: int) -> list[str]:
-    pad = " " * indent
-    lines: list[str] = []
-    if isinstance(value, dict) and value:
-        for key, item in value.items():
-            if isinstance(item, (dict, list)) and item:
-                lines.append(f"{pad}{_yaml_scalar(key)}:")
-                lines.extend(_yaml_lines(item, indent + 2))
-            else:
-                lines.append(f"{pad}{_yaml_scalar(key)}: {_yaml_scalar(item)}")
-    elif isinstance(value, list) and value:
-        for item in value:
-            if isinstance(item, (dict, list)) and item:
-                sub = _yaml_lines(item, indent + 2)
-                lines.append(f"{pad}- {sub[0][indent + 2:]}")
-                lines.extend(sub[1:])
-            else:
-                lines.append(f"{pad}- {_yaml_scalar(item)}")
-    else:
-        lines.append(pad + _yaml_scalar(value))
-    return lines
-
 
 # ---- the writer ------------------------------------------------------------------------------
 
@@ -571,7 +400,7 @@ class SessionBagWriter:
         try:
             metadata = self._bag_metadata(self._make_summary(),
                                           [*self._pieces, self._open_piece_entry()])
-            serialized = "\n".join(_yaml_lines(metadata, 0))
+            serialized = "\n".join(yaml_lines(metadata))
             writer.add_metadata(ROSBAG2_METADATA_RECORD, {"serialized_metadata": serialized})
             writer.finish()
         except OSError as err:
@@ -626,7 +455,7 @@ class SessionBagWriter:
             summary = self._summary
             metadata = self._bag_metadata(summary, self._pieces)
             document = {"rosbag2_bagfile_information": metadata}
-            text = "\n".join(_yaml_lines(document, 0))
+            text = "\n".join(yaml_lines(document))
             target = self._path / METADATA_FILENAME
             partial = self._path / (METADATA_FILENAME + ".partial")
             try:
@@ -698,7 +527,7 @@ class SessionBagWriter:
                 type_hash = type_description_hash(type_name)
         except MessageDefinitionError as err:
             raise SessionBagError(f"cannot add topic {topic}: {err}") from None
-        channel_qos = "\n".join(_yaml_lines(profiles, 0)) if profiles else "[]"
+        channel_qos = "\n".join(yaml_lines(profiles)) if profiles else "[]"
         metadata = {"offered_qos_profiles": channel_qos, "topic_type_hash": type_hash}
         with self._lock:
             self._require_open()

@@ -36,12 +36,9 @@ from pathlib import Path
 from typing import Any
 
 from fingerps_recon.errors import SessionBagError
+from fingerps_recon.sessions.rosbag2_qos import QosProfileFields, qos_profiles_yaml
 from fingerps_recon.sessions.sequence_gaps import SequenceGaps
-from fingerps_recon.sessions.session_bag import (
-    QosProfileFields,
-    SessionBagWriter,
-    qos_profiles_yaml,
-)
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 from fingerps_recon.sessions.session_retention import RetentionResult, enforce_limit
 from fingerps_recon.sessions.session_topics import RecordedTopic
 from fingerps_recon.sessions.write_queue import PendingMessage, WriteQueue
