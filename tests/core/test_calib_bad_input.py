@@ -14,7 +14,8 @@ import pytest
 from fingerps_calib.calibration_store import flat_field_problems, lights_problems
 from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_calib.lights.sphere_calibration import RADIUS_RANGE_M, calibrate_lights
+from fingerps_calib.lights.sphere_calibration import calibrate_lights
+from fingerps_calib.lights.sphere_silhouette import RADIUS_RANGE_M
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
 
 RADIUS = 4e-3

@@ -12,14 +12,9 @@ import numpy as np
 import pytest
 
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.lights.sphere_calibration import (
-    calibrate_lights,
-    calibrate_lights_orthographic,
-    fit_sphere_center,
-    highlight_centroid,
-    light_direction,
-    sphere_edge_points,
-)
+from fingerps_calib.lights.sphere_calibration import calibrate_lights, calibrate_lights_orthographic
+from fingerps_calib.lights.sphere_highlight import highlight_centroid, light_direction
+from fingerps_calib.lights.sphere_silhouette import fit_sphere_center, sphere_edge_points
 
 H, W = 240, 320
 K = np.array([[400.0, 0.0, 161.3], [0.0, 402.0, 118.7], [0.0, 0.0, 1.0]])

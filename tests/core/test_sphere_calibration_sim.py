@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_calib.lights.sphere_calibration import calibrate_lights, sphere_edge_points
+from fingerps_calib.lights.sphere_calibration import calibrate_lights
+from fingerps_calib.lights.sphere_silhouette import sphere_edge_points
 from fingerps_driver import simulation
 
 

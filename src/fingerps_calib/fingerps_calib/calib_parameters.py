@@ -15,7 +15,7 @@ from rclpy.node import Node
 
 from fingerps_calib.calibration_keeper import CalibrationSettings
 from fingerps_calib.errors import FingerpsCalibError
-from fingerps_calib.lights.sphere_calibration import RADIUS_RANGE_M, check_radius
+from fingerps_calib.lights.sphere_silhouette import RADIUS_RANGE_M, check_radius
 from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
 from fingerps_ros.node_runner import StartupError
 from fingerps_ros.parameter_table import ParameterRow, check_finite

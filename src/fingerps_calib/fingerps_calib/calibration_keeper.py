@@ -56,12 +56,8 @@ from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics
 from fingerps_calib.lights.led_triangulation import Placement, combine_placements
-from fingerps_calib.lights.sphere_calibration import (
-    RADIUS_RANGE_M,
-    LightCalibrationResult,
-    calibrate_lights,
-    check_radius,
-)
+from fingerps_calib.lights.sphere_calibration import LightCalibrationResult, calibrate_lights
+from fingerps_calib.lights.sphere_silhouette import RADIUS_RANGE_M, check_radius
 from fingerps_recon.photometric.full_scale import MONO16_DEFAULT
 from fingerps_ros.log import Log
 
