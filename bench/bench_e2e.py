@@ -78,12 +78,11 @@ The windows, in this order on one graph (after a rate change ``RATE_SETTLE_S`` t
     (metadata.yaml ``custom_data`` ``fingerps.not_written``, by topic and reason in the
     printed line), else its last /diagnostics' ``not_written`` (left out if neither).
 
-Targets (issue 21, for the AVX2 pass's figures on 2 cores): ``e2e.hk10.lost`` = 0 with
+Targets (for the AVX2 pass's figures on 2 cores): ``e2e.hk10.lost`` = 0 with
 ``e2e.hk10.published_per_s`` ~ 10, ``e2e.hk10.latency_ms_median`` <= 100 ms,
 ``e2e.hk10.latency_ms_p95`` <= 150 ms; ``e2e.hk.max_bursts_per_s`` reported;
 ``e2e.hk_print_rec.lost`` = 0 (and ``prints`` = every burst of the window),
-``e2e.hk_print_rec.latency_ms_median`` <= 150 ms. Issue 10's ``e2e.first_cloud_s`` <= 10
-stands.
+``e2e.hk_print_rec.latency_ms_median`` <= 150 ms; ``e2e.first_cloud_s`` <= 10.
 
 Alone: ``python bench/bench_e2e.py`` (``--no-demo`` skips the demo runs; ``--only
 kiosk10,print`` runs only those scenarios, of ``SCENARIOS``).
@@ -128,7 +127,7 @@ restarts (``e2e.first_cloud_s``) and print-and-recorder window (``e2e.hk_print_r
 GRAPH_SCENARIOS = SCENARIOS[1:]
 
 RATE_HZ = 5.0                  # the rig's burst rate: the kiosk's setting
-FAST_RATE_HZ = 10.0            # issue 21's target rate
+FAST_RATE_HZ = 10.0            # the real-time target's rate
 PRINT_RATE_HZ = 5.0            # the kiosk with the print and the recorder
 WINDOW_S = 60.0
 WARM_UP_CLOUDS, WARM_UP_MAX_S = 5, 10.0

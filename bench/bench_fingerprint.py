@@ -1,4 +1,4 @@
-"""Fingerprints of simulated fingers through the pipeline, judged by NIST NBIS (issue 12, 5).
+"""Fingerprints of simulated fingers through the pipeline, judged by NIST NBIS.
 
 Captures: ``IDENTITIES`` synthetic fingers (``RigConfig.finger_identity`` 0..19) x
 ``CAPTURES`` poses each, drawn per capture from a seeded generator: roll, yaw, pitch uniform

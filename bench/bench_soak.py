@@ -84,7 +84,7 @@ PROGRESS_EVERY_S = 300.0       # a progress line
 NODE_START_TIMEOUT_S = 30.0    # bringup's five children appear
 BRINGUP_STOP_TIMEOUT_S = 60.0  # what bringup gives the nodes (the recorder finishes its bag)
 
-# recorder_node's size/duration splitting and bags_dir cap (issue 11). False leaves the
+# recorder_node's size/duration splitting and bags_dir cap. False leaves the
 # three parameters out of the file (a recorder without them refuses unknown parameters).
 RECORDER_SPLITTING = True
 MAX_BAGFILE_SIZE = 256 * 1024 * 1024  # bytes, a new piece <session>_<n>.mcap beyond

@@ -1,4 +1,4 @@
-"""NIST NBIS as the judge of the synthetic fingerprints (issue 12, item 4; not yet in make bench).
+"""NIST NBIS as the judge of the synthetic fingerprints (not in make bench).
 
 For a few identities (seeds; the class drawn from the seed): the generator's time, its
 ground-truth minutiae, and on the 500 ppi render

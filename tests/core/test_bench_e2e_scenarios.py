@@ -1,6 +1,6 @@
 """bench/bench_e2e.py's harness logic without a graph: the ``--only`` scenarios, the keys a
 window reports under its prefix, and which rates the sweep tries after the 5/s and 10/s
-windows (issue 21's scenarios)."""
+windows (the real-time targets' scenarios)."""
 
 from __future__ import annotations
 

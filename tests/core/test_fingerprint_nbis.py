@@ -1,4 +1,4 @@
-"""NIST NBIS judges the pipeline's prints of simulated fingers (issue 12, item 4).
+"""NIST NBIS judges the pipeline's prints of simulated fingers.
 
 Two synthetic fingers, two captures each in different poses, through the rig's burst ->
 ``reconstruct_prepared`` (HK, the true LED positions, no flat field) -> ``rolled_print`` ->

@@ -13,8 +13,9 @@ from fingerps_recon.photometric.frames import ps_to_optical
 
 IDENTITY = 3
 
-# Normals of the default rig (the analytic spiral) at these pixels, computed with the code
-# before fingerprints and poses were added (commit 24d6e03); (0, 0, 0) is off the finger.
+# Normals of the default rig (the analytic spiral, no fingerprint, no pose) at these pixels:
+# the fingerprint and pose options must leave it as it renders them; (0, 0, 0) is off the
+# finger.
 _PIXELS = [(300, 330), (60, 330), (200, 140), (200, 520), (470, 300), (330, 250), (120, 400)]
 _NORMALS_BEFORE = [
     (0.16310403429679438, 0.16514333406338008, 0.9726894433530884),

@@ -1,4 +1,4 @@
-"""calib_node answers every bad request and bad parameter instead of dying (issue 11, item 2).
+"""calib_node answers every bad request and bad parameter instead of dying.
 
 A real calib_node process (no driver: the frames are in the requests, rendered here by the
 simulated rig; the intrinsics come from a camera_info this test publishes). Each bad call

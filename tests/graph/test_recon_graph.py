@@ -8,7 +8,7 @@ the burst's header; refuse, without outputs, a burst that lacks an LED's frame (
 (``bursts_failed``); keep running
 and reconstruct the next good burst; and stop cleanly on SIGINT.
 
-Every malformed input (issue 11): bursts of 0x0 or 0-wide images, beyond the size bounds,
+Every malformed input: bursts of 0x0 or 0-wide images, beyond the size bounds,
 with too many frames, step and data that disagree, duplicate or unknown LED indices, float
 images with NaN, a NaN dark frame; degenerate light calibrations (a zero direction,
 parallel directions, NaN intensities with LED positions), NaN flat-field maps, flat maps of

@@ -29,8 +29,8 @@ def points_to_cloud(points: np.ndarray, intensity: np.ndarray, *, header: Header
     count = int(pts.shape[0])
     raw = pyarray.array("B", b"\0") * (count * _DTYPE.itemsize)
     record = np.frombuffer(raw, dtype=_DTYPE)  # writable view of the message's bytes
-    # Field by field: the fastest fill measured (a (N, 4) float32 view filled with
-    # [:, :3] = points is ~2x slower).
+    # Field by field: contiguous column copies (a (N, 4) float32 view filled with
+    # [:, :3] = points writes strided rows, which is slower).
     record["x"], record["y"], record["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
     record["intensity"] = intensity
     del record  # releases the buffer export

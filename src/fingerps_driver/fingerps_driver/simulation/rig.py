@@ -307,10 +307,9 @@ class SimulatedRig:
     """Renders the rig's scenes under any set of lit LEDs (see the module docstring).
 
     Construction is cheap; each (scene, LED) image is computed on first use (the finger's
-    geometry ~0.6 s once, then ~0.1 s per LED; sphere ~0.06 s and target ~0.05 s per LED)
-    or all at once by ``warm_up``. A frame from the cache costs ~2-4 ms. Thread-safe. With a
-    ``finger_identity`` the first rig of that identity also generates its fingerprint (~1 s;
-    cached per identity for the process).
+    geometry once, then each LED's shading) or all at once by ``warm_up``; a frame from the
+    cache costs only its noise. Thread-safe. With a ``finger_identity`` the first rig of
+    that identity also generates its fingerprint (cached per identity for the process).
 
     Attributes
     ----------

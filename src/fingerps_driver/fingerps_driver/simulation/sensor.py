@@ -7,8 +7,8 @@ electrons), plus Gaussian read noise; then rounding and clipping to 0..2**bit_de
 
 Speed: the standard-normal deviates are drawn from the caller's generator as uniform 16-bit
 integers mapped through a table of the normal quantiles at (i + 1/2) / 65536 (rescaled to
-unit variance; tails cut at 4.3 sigma), about four times faster than
-``Generator.standard_normal`` and indistinguishable for sensor noise.
+unit variance; tails cut at 4.3 sigma): a table look-up instead of
+``Generator.standard_normal``'s transform, and indistinguishable for sensor noise.
 """
 
 from __future__ import annotations

@@ -40,8 +40,8 @@ PARAMETERS = (
     ParameterRow(
         "fingerprint", False,
         "Also publish the rolled-equivalent 500 ppi print of every burst on 'fingerprint' "
-        "(mono8, ridges dark; ~50 ms a burst on top of the reconstruction, so off by "
-        "default; the Scan action always makes one)"),
+        "(mono8, ridges dark; it costs time on top of the reconstruction (README, Real "
+        "time), so off by default; the Scan action always makes one)"),
     ENHANCE,
     RIDGE_PATCH,
     RIDGE_GAIN,

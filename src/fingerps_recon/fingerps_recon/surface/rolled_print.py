@@ -108,8 +108,8 @@ class RolledPrintOptions:
     gabor: bool = False
     """Contextual (Gabor) filtering after the normalisation. On the simulated rig it helps
     only noisy normals (agreement with the true ridges 0.87 -> 0.96 with normals noise of
-    0.3 per component) and costs ~20 ms; on clean ones it lowers the agreement a little
-    (0.973 -> 0.96), so it is off by default."""
+    0.3 per component) and costs a filter bank per print; on clean ones it lowers the
+    agreement a little (0.973 -> 0.96), so it is off by default."""
     gabor_period_mm: float = 0.5
     """Ridge period the Gabor filters are tuned to (their band is ~+-30 %)."""
 

@@ -27,7 +27,7 @@ Steps (:func:`unroll_surface`):
 3. Relaxation: minimise sum_ij ((|x_i - x_j| - L_ij) / L_ij)^2 (relative strain, every
    spring weighted alike) by Levenberg-Marquardt; the normal equations are banded in the
    row-major node order, so each step is a banded Cholesky solve (~600-800 nodes on the
-   rig: 3 iterations of ~1 ms).
+   rig, 3 iterations).
 4. Rigid motion: the layout is rotated onto the image-plane positions of its nodes
    (Procrustes without reflection), so the finger keeps its direction in the image (the
    rig's finger points up the image), and shifted so that the apex (the node nearest the
@@ -119,7 +119,7 @@ class SurfaceUnrolling:
     def pixel_xy_mm(self) -> np.ndarray:
         """(H, W, 2) float32 unrolled (x, y) of every pixel, millimetres (bilinear between
         the nodes, linearly extrapolated up to two nodes beyond them); NaN outside
-        ``mask``. Computed on first use (~6 ms)."""
+        ``mask``. Computed on first use."""
         grid, _ = self._extended
         step = self.step_px
         h, w = self.mask.shape
@@ -240,7 +240,7 @@ def unroll_surface(
         Pinhole intrinsics K.
     spacing_mm : float
         Mesh spacing in the image plane at the median depth, millimetres (>= 2 pixels).
-        0.4 mm costs ~10 ms more on the rig and halves the distance error at 50-60 deg
+        0.4 mm has twice the nodes (and the time) and halves the distance error at 50-60 deg
         slopes (1.75 % -> 1.2 % at worst on an 8 mm cylinder).
     smoothing_nodes : float
         Gaussian sigma of the local depth fit's weights, in mesh nodes (0: each block
