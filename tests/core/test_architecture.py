@@ -44,7 +44,7 @@ SCIENCE_ROOMS = (
 ROS_FREE_PLUMBING = ("fingerps_ros.parameter_table",)
 ROS_MODULES = ("rclpy", "sensor_msgs", "std_msgs", "fingerps_msgs", "diagnostic_msgs",
                "rcl_interfaces", "builtin_interfaces", "geometry_msgs", "action_msgs")
-MAX_NODE_LINES = 300
+MAX_NODE_LINES = 250
 
 
 def _modules() -> dict[str, tuple[Path, set[str]]]:

@@ -17,8 +17,8 @@ import yaml
 from fingerps_calib.calib_parameters import CALIB_PARAMETERS
 from fingerps_driver.driver_parameters import driver_parameters
 from fingerps_recon.reconstruction.parameters import PARAMETERS as RECON_PARAMETERS
-from fingerps_recon.recorder_node import recorder_parameters
 from fingerps_recon.scan.scan_settings import SCAN_PARAMETERS
+from fingerps_recon.sessions.recorder_parameters import recorder_parameters
 from fingerps_ros.parameter_table import ParameterRow
 
 SRC = Path(__file__).resolve().parents[2] / "src"

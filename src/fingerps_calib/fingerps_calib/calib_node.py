@@ -29,7 +29,6 @@ WARN while the latest call was refused, ERROR if it failed unexpectedly).
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -55,6 +54,7 @@ from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights, CaptureBurst
 from fingerps_ros import qos, topics
 from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher
 from fingerps_ros.node_runner import StartupError, run_node
+from fingerps_ros.service_call import call_service
 
 
 class CalibNode(Node):
@@ -161,17 +161,14 @@ class CalibNode(Node):
             raise FingerpsCalibError(
                 f"no images in the request and the driver's {self._capture.srv_name} service "
                 "is not available: start driver_node or send the images in the request")
-        done = threading.Event()
-        future = self._capture.call_async(
-            CaptureBurst.Request(response_only=True, with_dark_frame=with_dark))
-        future.add_done_callback(lambda _: done.set())
-        if not done.wait(timeout):
+        response = call_service(
+            self._capture, CaptureBurst.Request(response_only=True, with_dark_frame=with_dark),
+            timeout)
+        if response is None:
             raise FingerpsCalibError(
                 f"the driver did not answer within {timeout} s; check driver_node")
-        response = future.result()
-        if response is None or not response.success:
-            reason = response.message if response is not None else "no response"
-            raise FingerpsCalibError(f"the driver's burst failed: {reason}")
+        if not response.success:
+            raise FingerpsCalibError(f"the driver's burst failed: {response.message}")
         return response.burst
 
     # ------------------------------------------------------------------ services

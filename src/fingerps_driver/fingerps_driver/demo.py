@@ -48,7 +48,7 @@ from fingerps_recon.photometric.angular_error import angular_error_deg, summariz
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.surface.ply import write_ply
-from fingerps_ros import qos, topics
+from fingerps_ros import qos, service_call, topics
 from fingerps_ros.command_line import EXIT_FAILED, CommandLineTool
 from fingerps_ros.image_conversion import image_to_array
 from fingerps_ros.point_cloud_conversion import cloud_to_points
@@ -113,13 +113,10 @@ def call_service(client, request, *, timeout: float, what: str):
     if not client.wait_for_service(timeout_sec=timeout):
         raise DemoError(f"{what}: service {client.srv_name} not available after "
                         f"{timeout:.0f} s; see the node's log above")
-    future = client.call_async(request)
-    deadline = time.monotonic() + timeout
-    while not future.done() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    if not future.done():
+    response = service_call.call_service(client, request, timeout)
+    if response is None:
         raise DemoError(f"{what}: no answer from {client.srv_name} within {timeout:.0f} s")
-    return future.result()
+    return response
 
 
 class DemoClient(Node):

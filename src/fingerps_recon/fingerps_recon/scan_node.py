@@ -1,21 +1,17 @@
 """scan_node: the Scan action - wait for a finger, capture still bursts, reconstruct, judge.
 
-Thin ROS adapter for kiosks and robots around `scan.scan_sequence.ScanSequence` (the goal's
-states, reported as feedback; its verdict, timeout and cancel). One goal at a time: a goal
-arriving while another runs, or one with impossible values, is rejected at once; ROS 2's
-goal response carries no text, so the reason is logged and published on ``scan/rejections``
-(std_msgs/String). The node declares the parameters (`scan.scan_settings`), calls the
-driver's ``capture_burst`` (``response_only`` while waiting for a finger;
-``repeat_first_led`` and published on ``burst`` while capturing, so the recorder records
-it), reconstructs with the calibration in force (the transient-local calibration topics,
-each message checked on arrival as recon_node checks it:
-``reconstruction.calibration_in_force``) and publishes the result, the feedback and the
-verdict on ``/diagnostics``.
+Thin ROS adapter around `scan.scan_sequence.ScanSequence` (the goal's states as feedback,
+its verdict, timeout and cancel). One goal at a time: a goal arriving while another runs, or
+one with impossible values, is rejected at once, the reason logged and published on
+``scan/rejections`` (ROS 2's goal response carries no text). It calls the driver's
+``capture_burst`` (``response_only`` while waiting for a finger; ``repeat_first_led`` and
+published, so recorded, while capturing), reconstructs with the calibration in force
+(``reconstruction.calibration_in_force``, each message checked as recon_node checks it) and
+publishes the result, the feedback and the verdict on ``/diagnostics``.
 """
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -31,22 +27,17 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from fingerps_msgs.action import Scan
-from fingerps_msgs.msg import Burst, FlatField, LightCalibration
+from fingerps_msgs.msg import FlatField, LightCalibration
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_recon.errors import FingerpsReconError, ScanAbortedError
-from fingerps_recon.photometric.full_scale import full_scale_of
 from fingerps_recon.photometric.pipeline import ReconstructionOptions
-from fingerps_recon.reconstruction.burst_intake import BurstLimits
+from fingerps_recon.reconstruction.burst_intake import BurstLimits, scan_burst
 from fingerps_recon.reconstruction.burst_reconstruction import (
     BurstReconstruction,
     reconstruct_burst,
 )
 from fingerps_recon.reconstruction.calibration_in_force import CalibrationInForce
-from fingerps_recon.reconstruction.outputs import (
-    fingerprint_message,
-    normal_map_array,
-    normals_array,
-)
+from fingerps_recon.reconstruction.outputs import fill_scan_result
 from fingerps_recon.scan.scan_sequence import (
     GoalEnd,
     ScanBurst,
@@ -62,16 +53,13 @@ from fingerps_recon.scan.scan_settings import (
 from fingerps_ros import qos, topics
 from fingerps_ros.diagnostics import PERIOD_S, DiagnosticsPublisher, key_values
 from fingerps_ros.errors import FingerpsError
-from fingerps_ros.image_conversion import array_to_image, image_to_array
 from fingerps_ros.node_runner import run_node
 from fingerps_ros.parameters import declare_parameters
-from fingerps_ros.point_cloud_conversion import points_to_cloud
+from fingerps_ros.service_call import call_service
 
 SCAN = "scan"                       # fingerps_msgs/action/Scan
 SCAN_REJECTIONS = "scan/rejections"  # std_msgs/String: why a goal was rejected
-# The bounds on a burst's and a flat field's images (recon_node's max_image_* parameters'
-# defaults).
-_LIMITS = BurstLimits()
+_LIMITS = BurstLimits()  # a burst's and a flat field's image bounds: recon_node's defaults
 
 
 class ScanNode(Node):
@@ -194,19 +182,7 @@ class ScanNode(Node):
 
     def _deliver(self, result: Scan.Result, outcome: ScanOutcome) -> None:
         """Fill the result of a scan that succeeded, then publish its verdict."""
-        rec, header, f = outcome.made.result, outcome.burst.source.header, outcome.verdict.figures
-        result.success, result.accepted = True, outcome.accepted
-        result.reasons, result.message = list(outcome.reasons), outcome.message
-        result.normals = array_to_image(normals_array(rec), encoding="32FC3", header=header)
-        result.normal_map = array_to_image(normal_map_array(rec), encoding="rgb8",
-                                           header=header)
-        result.points = points_to_cloud(rec.points_optical, rec.point_albedo, header=header)
-        if outcome.fingerprint is not None:
-            result.fingerprint = fingerprint_message(outcome.fingerprint, header.stamp)
-        result.finger_coverage, result.saturated_fraction = f.coverage, f.saturated_fraction
-        result.dark_fraction, result.ridge_visibility = f.dark_fraction, f.ridge_visibility
-        result.motion_px, result.motion_correlation = f.motion_px, f.motion_correlation
-        result.residual = f.residual
+        fill_scan_result(result, outcome)
         result.session_path = self._session_path()
         self._diagnostics.publish()
 
@@ -220,22 +196,8 @@ class ScanNode(Node):
         response = self._call(self._capture, request, timeout, "capture_burst")
         if not response.success:
             raise ScanAbortedError(f"burst capture failed: {response.message}")
-        return self._scan_burst(response.burst)
-
-    def _scan_burst(self, burst: Burst) -> ScanBurst:
-        """The arrays the sequence looks at (see `ScanBurst` for what None means)."""
-        encoding = burst.frames[0].image.encoding if burst.frames else ""
-        led = burst.repeat_frame.led_index
-        repeated = next((f for f in burst.frames if f.led_index == led), None)
-        has_repeat = burst.has_repeat_frame
-        return ScanBurst(
-            burst.burst_id, image_to_array(burst.frames[0].image) if burst.frames else None,
-            image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None,
-            full_scale_of(encoding,
-                          mono16_full_scale=float(self._value("mono16_full_scale"))),
-            repeated=image_to_array(repeated.image) if has_repeat and repeated else None,
-            repeat=image_to_array(burst.repeat_frame.image) if has_repeat else None,
-            repeat_led=led, source=burst)
+        return scan_burst(response.burst,
+                          mono16_full_scale=float(self._value("mono16_full_scale")))
 
     def _reconstruct(self, burst: ScanBurst, options: ReconstructionOptions
                      ) -> BurstReconstruction:
@@ -244,13 +206,10 @@ class ScanNode(Node):
             mono16_full_scale=float(self._value("mono16_full_scale")), limits=_LIMITS)
 
     def _call(self, client: Client, request: object, timeout: float, what: str) -> Any:
-        done = threading.Event()
-        future = client.call_async(request)
-        future.add_done_callback(lambda _f: done.set())
-        if not done.wait(timeout):
-            client.remove_pending_request(future)
+        response = call_service(client, request, timeout)
+        if response is None:
             raise ScanAbortedError(f"no answer from {what} within {timeout:g} s")
-        return future.result()
+        return response
 
     def _session_path(self) -> str:
         """``<bags_dir>/<session_name>`` of the recorder, or "" when it does not answer."""

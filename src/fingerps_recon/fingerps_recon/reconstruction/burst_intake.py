@@ -19,6 +19,7 @@ from fingerps_recon.errors import FingerpsReconError, IncompleteBurstError
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.full_scale import FULL_SCALE, MONO16_DEFAULT, full_scale_of
 from fingerps_recon.photometric.pipeline import check_calibration, check_portions
+from fingerps_recon.scan.scan_sequence import ScanBurst
 from fingerps_ros.image_conversion import image_to_array, images_to_array
 
 
@@ -158,3 +159,20 @@ def _check_image_size(image: Image, limits: BurstLimits, what: str) -> None:
             f"an {what} of {width}x{height} px, beyond max_image_width x max_image_height "
             f"{limits.max_width}x{limits.max_height}: refused; raise the bounds if the "
             "camera really is that large (memory and time grow with the pixels)")
+
+
+def scan_burst(burst: Burst, *, mono16_full_scale: float = MONO16_DEFAULT) -> ScanBurst:
+    """A Burst message (from the driver's capture_burst) as the arrays the Scan sequence
+    looks at (``scan.scan_sequence.ScanBurst``: the first LED's frame, the dark frame, the
+    repeat of the first LED and its first frame; None where the burst has none)."""
+    encoding = burst.frames[0].image.encoding if burst.frames else ""
+    led = burst.repeat_frame.led_index
+    repeated = next((f for f in burst.frames if f.led_index == led), None)
+    has_repeat = burst.has_repeat_frame
+    return ScanBurst(
+        burst.burst_id, image_to_array(burst.frames[0].image) if burst.frames else None,
+        image_to_array(burst.dark_frame.image) if burst.has_dark_frame else None,
+        full_scale_of(encoding, mono16_full_scale=mono16_full_scale),
+        repeated=image_to_array(repeated.image) if has_repeat and repeated else None,
+        repeat=image_to_array(burst.repeat_frame.image) if has_repeat else None,
+        repeat_led=led, source=burst)

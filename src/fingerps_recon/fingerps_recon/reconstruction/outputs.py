@@ -11,7 +11,7 @@ subscribes to, as image_transport publishes nothing while nobody watches).
 from __future__ import annotations
 
 from collections.abc import Collection, Iterator
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -21,6 +21,7 @@ from std_msgs.msg import Header
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import Reconstruction
+from fingerps_recon.scan.scan_sequence import ScanOutcome
 from fingerps_ros import topics
 from fingerps_ros.image_conversion import array_to_image
 from fingerps_ros.point_cloud_conversion import points_to_cloud
@@ -87,3 +88,21 @@ def fingerprint_message(image: np.ndarray, stamp: Time) -> Image:
 def fingerprint_output(image: np.ndarray, stamp: Time) -> Output:
     """The ``fingerprint`` output of a rolled print (:func:`fingerprint_message`)."""
     return Output(topics.FINGERPRINT, fingerprint_message(image, stamp), image, "mono8")
+
+
+def fill_scan_result(result: Any, outcome: ScanOutcome) -> None:
+    """A Scan action's result (``fingerps_msgs/action/Scan``) of a scan that succeeded: the
+    verdict, the best burst's normals (32FC3), normal map (rgb8) and points in its header,
+    its print if made, and the verdict's figures."""
+    rec, header, f = outcome.made.result, outcome.burst.source.header, outcome.verdict.figures
+    result.success, result.accepted = True, outcome.accepted
+    result.reasons, result.message = list(outcome.reasons), outcome.message
+    result.normals = array_to_image(normals_array(rec), encoding="32FC3", header=header)
+    result.normal_map = array_to_image(normal_map_array(rec), encoding="rgb8", header=header)
+    result.points = points_to_cloud(rec.points_optical, rec.point_albedo, header=header)
+    if outcome.fingerprint is not None:
+        result.fingerprint = fingerprint_message(outcome.fingerprint, header.stamp)
+    result.finger_coverage, result.saturated_fraction = f.coverage, f.saturated_fraction
+    result.dark_fraction, result.ridge_visibility = f.dark_fraction, f.ridge_visibility
+    result.motion_px, result.motion_correlation = f.motion_px, f.motion_correlation
+    result.residual = f.residual
