@@ -91,6 +91,7 @@ from fingerps_recon.errors import RolledPrintError
 from fingerps_recon.photometric.pipeline import (
     Model,
     PreparedCalibration,
+    Reconstruction,
     ReconstructionOptions,
     prepare_calibration,
     reconstruct_prepared,
@@ -165,6 +166,16 @@ def calibrations() -> dict[Model, PreparedCalibration]:
         intensities=flat.relative_intensities, portions=flat.portions,
         led_positions_optical=rig.led_positions_optical,
         options=ReconstructionOptions(model=model, enhance=True)) for model in MODELS}
+
+
+def reconstructed_print(rig: SimulatedRig, images: np.ndarray, prepared: PreparedCalibration,
+                        model: Model) -> tuple[Reconstruction, RolledPrint]:
+    """A burst reconstructed as recon_node does (ridge transform on) and its rolled print;
+    raises ``RolledPrintError`` when the print cannot be made."""
+    recon = reconstruct_prepared(images, prepared, full_scale=rig.max_value(),
+                                 options=ReconstructionOptions(model=model, enhance=True))
+    return recon, rolled_print(recon.depth_m, mask=recon.mask, camera_matrix=rig.camera_matrix,
+                               normals_ps=recon.normals_ps)
 
 
 def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -340,13 +351,8 @@ def run() -> dict[str, float]:
             cells = []
             for model in MODELS:
                 out = PrintResult()
-                options = ReconstructionOptions(model=model, enhance=True)
-                recon = reconstruct_prepared(images, prepared[model],
-                                             full_scale=rig.max_value(), options=options)
                 try:
-                    fp = rolled_print(recon.depth_m, mask=recon.mask,
-                                      camera_matrix=rig.camera_matrix,
-                                      normals_ps=recon.normals_ps)
+                    recon, fp = reconstructed_print(rig, images, prepared[model], model)
                 except RolledPrintError as error:
                     out.error = f"{error.reason.value}: {error}"
                     cells.append(f"{model.value[:3]} refused: {error.reason.value}")
@@ -396,13 +402,8 @@ def run_print_timing() -> dict[str, float]:
             rig = posed_rig(identity, draw_pose(identity, capture))
             images = rig.render_burst(Scene.FINGER, seed=[SEED, identity, capture])
             for model in MODELS:
-                options = ReconstructionOptions(model=model, enhance=True)
-                recon = reconstruct_prepared(images, prepared[model],
-                                             full_scale=rig.max_value(), options=options)
                 try:
-                    fp = rolled_print(recon.depth_m, mask=recon.mask,
-                                      camera_matrix=rig.camera_matrix,
-                                      normals_ps=recon.normals_ps)
+                    _, fp = reconstructed_print(rig, images, prepared[model], model)
                 except RolledPrintError:
                     continue
                 times[model].append(fp.timings_ms["total"])

@@ -17,17 +17,8 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from fingerps_recon.errors import ImpossibleGoalError
+from fingerps_recon.photometric import option_rows as rows
 from fingerps_recon.photometric.full_scale import MONO16_FULL_SCALE
-from fingerps_recon.photometric.option_rows import (
-    ENHANCE,
-    HK_ITERATIONS,
-    MASK_THRESHOLD,
-    MODEL,
-    PROJECTION,
-    RIDGE_GAIN,
-    RIDGE_PATCH,
-    WORKING_DISTANCE,
-)
 from fingerps_recon.photometric.pipeline import Model, Projection, ReconstructionOptions
 from fingerps_recon.scan.quality import QualityThresholds
 from fingerps_ros.parameter_table import ParameterRow
@@ -44,14 +35,10 @@ GOAL_PARAMETERS = (
 
 _T = QualityThresholds()
 SCAN_PARAMETERS: tuple[ParameterRow, ...] = (
-    replace(MODEL, description=MODEL.description + "; a goal's model field overrides it"),
-    PROJECTION,
-    HK_ITERATIONS,
-    MASK_THRESHOLD,
-    ENHANCE,
-    RIDGE_PATCH,
-    RIDGE_GAIN,
-    WORKING_DISTANCE,
+    replace(rows.MODEL, description=rows.MODEL.description + "; a goal's model field "
+            "overrides it"),
+    rows.PROJECTION, rows.HK_ITERATIONS, rows.MASK_THRESHOLD, rows.ENHANCE, rows.RIDGE_PATCH,
+    rows.RIDGE_GAIN, rows.WORKING_DISTANCE,
     MONO16_FULL_SCALE,
     ParameterRow("timeout", 30.0, "Seconds a goal may take when it gives timeout 0",
                  0.1, 3600.0),
