@@ -28,6 +28,7 @@ from std_msgs.msg import Header
 
 from fingerps_msgs.msg import Burst, LightCalibration, TaggedFrame
 from fingerps_recon.errors import FingerpsReconError, MessageDefinitionError, SessionBagError
+from fingerps_recon.sessions.bag_metadata import INT64_MAX
 from fingerps_recon.sessions.message_definition import (
     SEPARATOR,
     load_message_definition,
@@ -35,7 +36,7 @@ from fingerps_recon.sessions.message_definition import (
     type_description_hash,
 )
 from fingerps_recon.sessions.rosbag2_qos import QosProfileFields, qos_profiles_yaml
-from fingerps_recon.sessions.session_bag import INT64_MAX, SessionBagWriter
+from fingerps_recon.sessions.session_bag import SessionBagWriter
 from fingerps_ros import qos
 
 T0 = 1_700_000_000_000_000_000

@@ -50,7 +50,7 @@ is block-coordinate descent across bursts, whose fixed point is the joint minimu
 pixels' gradients vanish at their solution, A's at its linear fit).
 
 The derivatives dS/dc_i and dS/dc_r of S = c_i / (c_i + c_r) (1 - E) contain 1/c_i and 1/c_r
-and blow up as c_i or c_r -> 0; those factors are capped at 1 / ``_DERIVATIVE_FLOOR`` (the
+and blow up as c_i or c_r -> 0; those factors are capped at 1 / ``DERIVATIVE_FLOOR`` (the
 model values are not changed), so the Jacobian stays finite. The optical-depth exponential
 E = exp(-tau_d (1/c_i + 1/c_r)) is evaluated exactly: for the finger constants it is below
 3e-4 at every angle (tau_d (1/c_i + 1/c_r) >= 2 tau_d = 8.3, never above the 30 at which it
@@ -77,23 +77,18 @@ from types import ModuleType
 import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError
+from fingerps_recon.photometric.hk_inputs import (
+    check_burst,
+    check_images,
+    check_lighting,
+    check_options,
+    checked_mask,
+)
+from fingerps_recon.photometric.hk_joint_fit import JointPasses, fit_jointly
 from fingerps_recon.photometric.hk_model import PhaseConvention, SkinParams
+from fingerps_recon.photometric.hk_settings import LAMBDA_START, MIN_INIT_CR, kernel_consts
 from fingerps_recon.photometric.kernel_threads import numba_threads
-from fingerps_recon.photometric.light_intensities import checked_intensities
 
-# 1/c_i and 1/c_r in the derivatives are capped at 1 / _DERIVATIVE_FLOOR.
-_DERIVATIVE_FLOOR = 1e-3
-# Smallest c_i used where the model is evaluated (avoids 1/0; changes f by < 1e-12 A p).
-_VALUE_FLOOR = 1e-12
-# Initial normals facing away from the camera (v.n below this) are tilted to it.
-_MIN_INIT_CR = 0.05
-# Levenberg–Marquardt damping: start, decrease on success, increase on failure, bounds.
-_LAMBDA_START = 1e-3
-_LAMBDA_DOWN = 1.0 / 3.0
-_LAMBDA_UP = 10.0
-_LAMBDA_MIN = 1e-9
-_LAMBDA_MAX = 1e9
-_N_SUMS = 15
 # The compiled kernels (photometric.hk_kernel), imported once per process: [module] or
 # [None, reason] if numba cannot be set up.
 _KERNEL: list = []
@@ -205,14 +200,14 @@ def prepare_hk_lighting(
     pixels. Computed once per calibration and camera; raises ``FingerpsReconError`` on
     inconsistent shapes or bad directions."""
     h, w = (int(v) for v in shape)
-    lgt, per_pixel, vw, e = _check_lighting(lights, (h, w), views, intensities, params)
+    lgt, per_pixel, vw, e = check_lighting(lights, (h, w), views, intensities, params)
     kernel = _kernel()
     k = lgt.shape[0]
     hw = h * w
     if mask is None:
         pixels = np.arange(hw, dtype=np.int64)
     else:
-        pixels = np.flatnonzero(_checked_mask(mask, (h, w))).astype(np.int64)
+        pixels = np.flatnonzero(checked_mask(mask, (h, w))).astype(np.int64)
     index = np.full(hw, -1, np.int64)
     index[pixels] = np.arange(pixels.size)
     f32 = np.float32
@@ -300,17 +295,17 @@ def solve_hk(
         non-positive intensities, bad options, or numba missing. The inputs are not
         modified.
     """
-    imgs = _check_images(images)
+    imgs = check_images(images)
     k, h, w = imgs.shape
     if np.shape(lights) not in ((k, 3), (k, h, w, 3)):
         raise FingerpsReconError(
             f"lights must have shape (K, 3) = ({k}, 3) or (K, H, W, 3) = ({k}, {h}, {w}, 3) "
             f"to match images {imgs.shape}, got {np.shape(lights)}"
         )
-    _check_options(scale, iterations, tol)
+    check_options(scale, iterations, tol)
     lighting = prepare_hk_lighting(lights, shape=imgs.shape[1:], views=views,
                                    intensities=intensities, params=params,
-                                   mask=_checked_mask(mask, imgs.shape[1:]))
+                                   mask=checked_mask(mask, imgs.shape[1:]))
     return solve_hk_prepared(imgs, lighting, mask=mask, init_normals=init_normals,
                              init_albedo=init_albedo, usable=usable, scale=scale,
                              iterations=iterations, tol=tol)
@@ -336,16 +331,16 @@ def solve_hk_prepared(
     ``FingerpsReconError`` on inputs that do not fit the lighting (size, light count, a
     mask pixel whose chunk was not prepared)."""
     kernel = _kernel()
-    imgs = _check_images(images)
-    _check_options(scale, iterations, tol)
+    imgs = check_images(images)
+    check_options(scale, iterations, tol)
     if initial_scale is not None:
-        _check_options(initial_scale, iterations, tol)
+        check_options(initial_scale, iterations, tol)
     k, h, w = imgs.shape
     if (h, w) != lighting.shape or k != lighting.light_count:
         raise FingerpsReconError(
             f"images {imgs.shape} do not fit the prepared lighting of {lighting.light_count} "
             f"lights and {lighting.shape[1]} x {lighting.shape[0]} px")
-    m, n_in, rho_in, use_in = _check_burst(imgs.shape, mask, init_normals, init_albedo, usable)
+    m, n_in, rho_in, use_in = check_burst(imgs.shape, mask, init_normals, init_albedo, usable)
     cand = np.flatnonzero(m)
     if np.any(lighting.index[cand] < 0):
         raise FingerpsReconError(
@@ -402,14 +397,14 @@ def _solve(
     counts = np.empty(cand.size, np.float64)
     flags = np.empty(chunks, np.uint8)
     kernel.gather(cand, lighting.index, imgs, use_in, n_in, rho_in, lighting.terms,
-                  lighting.views, lighting.bad, _MIN_INIT_CR, meas, v_dirs, n0, rho0, solved,
+                  lighting.views, lighting.bad, MIN_INIT_CR, meas, v_dirs, n0, rho0, solved,
                   counts, flags)
     if not solved.any():
         return _nothing_valid((h, w), scale)
     _check_flags(kernel, flags)
-    passes = _Passes(kernel, (meas, v_dirs), tau=float(lighting.params.optical_depth), n=n0,
+    passes = JointPasses(kernel, (meas, v_dirs), tau=float(lighting.params.optical_depth), n=n0,
                      rho=rho0)
-    a_scale, history, done = _minimise(passes, scale=start, iterations=iterations, tol=tol)
+    a_scale, history, done = fit_jointly(passes, scale=start, iterations=iterations, tol=tol)
     normals = np.zeros((hw, 3), np.float32)
     albedo = np.zeros(hw, np.float32)
     rms = np.zeros(hw, np.float32)
@@ -444,9 +439,9 @@ def _solve_held(
     parts = np.zeros((chunks, 5), np.float64)
     tau = float(lighting.params.optical_depth)
     kernel.solve_held(cand, lighting.index, imgs, usable, normals_in, albedo_in,
-                      lighting.terms, lighting.views, lighting.bad, _MIN_INIT_CR, scale,
-                      np.float32(scale * tau), np.float32(-tau), _consts(kernel),
-                      np.float32(_LAMBDA_START), iterations, tol, solved, counts, normals,
+                      lighting.terms, lighting.views, lighting.bad, MIN_INIT_CR, scale,
+                      np.float32(scale * tau), np.float32(-tau), kernel_consts(kernel),
+                      np.float32(LAMBDA_START), iterations, tol, solved, counts, normals,
                       albedo, rms, valid, flags, parts)
     _check_flags(kernel, flags)
     if not solved.any():
@@ -475,19 +470,6 @@ def _check_flags(kernel: ModuleType, flags: np.ndarray) -> None:
             raise FingerpsReconError(f"{name} contain zero vectors inside the mask")
 
 
-def _consts(kernel: ModuleType) -> np.ndarray:
-    """The kernels' float32 constants (floors, damping factors), indexed as in
-    :mod:`photometric.hk_kernel`."""
-    consts = np.zeros(kernel.N_CONSTS, np.float32)
-    for index, value in (
-        (kernel.VALUE_FLOOR, _VALUE_FLOOR), (kernel.DERIVATIVE_FLOOR, _DERIVATIVE_FLOOR),
-        (kernel.LAMBDA_DOWN, _LAMBDA_DOWN), (kernel.LAMBDA_UP, _LAMBDA_UP),
-        (kernel.LAMBDA_MIN, _LAMBDA_MIN), (kernel.LAMBDA_MAX, _LAMBDA_MAX),
-    ):
-        consts[index] = value
-    return consts
-
-
 def _float_array(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """``a`` reshaped, C-contiguous, float32 or float64 (other dtypes as float64): the
     dtypes the kernels are compiled for."""
@@ -497,245 +479,3 @@ def _float_array(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.ascontiguousarray(a).reshape(shape)
 
 
-def _minimise(
-    passes: _Passes, *, scale: float | None, iterations: int, tol: float,
-) -> tuple[float, list[float], int]:
-    """Initialisation and the Levenberg–Marquardt loop (module docstring), in place on the
-    state of ``passes``.
-
-    Each iteration is two passes over the pixels: the candidates, their sums and the choice
-    at the trial A; then, once the new A is known, the commit fused with the next step.
-    ``scale``: A's initial value (None: the global linear fit); A is fitted (a held A is
-    solved by :func:`_solve_held`). Returns (A, cost history, iterations done).
-    """
-    # A and every rho jointly by linear least squares, normals fixed: with the per-pixel
-    # sums PP, PC, CC, PI, CI, rho_j(A) = (CI - A PC) / CC and
-    # A = sum_j (PI - PC CI / CC) / sum_j (PP - PC^2 / CC). Then rho for the initial A
-    # (an A given: the start forms the per-pixel sums itself, without the global ones).
-    if scale is None:
-        num, den = passes.linear()
-        a_scale = max(num / den, 0.0) if den > 0 else 0.0
-    else:
-        a_scale = float(scale)
-    total, *schur = passes.start(a_scale, rows_given=scale is None)
-    lam_scale = _LAMBDA_START
-    history = [total]
-    done = 0
-    while done < iterations:
-        done += 1
-        # Joint step: A's part from the Schur complement (hk_kernel._steps), then the
-        # pixels'.
-        trial = a_scale
-        g_a, c_delta, d_sum, c_w = schur
-        den = d_sum * (1.0 + lam_scale) - c_w
-        if den > 1e-12 * d_sum:
-            trial = max(a_scale + (g_a - c_delta) / den, 0.0)
-        scales = (a_scale, trial)
-        # A in closed form for the states chosen at the trial A (the model is linear in
-        # A; their cost at A is a known quadratic). The commit re-chooses at that A,
-        # which can only lower the cost further. If even so the total would not drop,
-        # keep the old A (each pixel then takes the better of its two states there).
-        cost, g_sum, d_sum = passes.candidate(scales)
-        delta = g_sum / d_sum if d_sum > 0 else 0.0
-        best = max(trial + delta, 0.0)
-        delta = best - trial
-        new_scale, fell_back = best, False
-        if cost - delta * (2.0 * g_sum - delta * d_sum) > total:
-            new_scale, fell_back = a_scale, True
-        lam_scale = (
-            min(lam_scale * _LAMBDA_UP, _LAMBDA_MAX) if fell_back
-            else max(lam_scale * _LAMBDA_DOWN, _LAMBDA_MIN)
-        )
-        new_total, *schur = passes.commit(scales, at=new_scale)
-        a_scale = new_scale
-        decrease = total - new_total
-        total = new_total
-        history.append(total)
-        if decrease <= tol * history[-2] and not fell_back:
-            break
-    return a_scale, history, done
-
-
-class _Passes:
-    """The per-pixel passes of :func:`_minimise` (:mod:`photometric.hk_kernel`), with the
-    state they update in place: one compiled, vectorised loop over the chunks of pixels per
-    pass, in numba's threads (``numba_threads``), the global sums added up per chunk in a
-    fixed order. Each pass returns its global sums: ``linear`` the numerator and
-    denominator of A's linear fit; ``start`` and ``commit`` the total cost and the Schur
-    parts (P.r, (J^T P).delta0, P.P, (J^T P).w); ``candidate`` the parts of the choice at
-    the trial A (chosen cost, P.r, P.P) (``start`` forms the
-    linear fit's per-pixel sums itself unless ``linear`` did). ``data``: (meas, views)
-    (:func:`_solve`); ``n`` (3, Np) and ``rho`` (Np,) float32 the initial
-    state."""
-
-    def __init__(
-        self, kernel: ModuleType, data: tuple[np.ndarray, ...], *, tau: float, n: np.ndarray,
-        rho: np.ndarray,
-    ) -> None:
-        f32 = np.float32
-        self.kernel, self.data, self.n, self.rho = kernel, data, n, rho
-        count = rho.size
-        self.chunks = count // kernel.CHUNK
-        self.tau = tau
-        self.neg_tau = f32(-tau)
-        self.consts = _consts(kernel)
-        self.lam = np.full(count, _LAMBDA_START, f32)
-        self.sums = np.zeros((_N_SUMS, count), f32)
-        self.sums_new = np.zeros((_N_SUMS, count), f32)
-        self.n_new = np.empty_like(n)
-        self.rho_new = np.empty_like(rho)
-        self.delta0 = np.zeros((3, count), f32)
-        self.w = np.zeros((3, count), f32)
-        self.rows = np.zeros((5, count), f32)
-
-    def _parts(self, width: int) -> np.ndarray:
-        return np.zeros((self.chunks, width), np.float64)
-
-    def _a_tau(self, scale: float) -> np.float32:
-        return np.float32(scale * self.tau)
-
-    def linear(self) -> list[float]:
-        parts = self._parts(2)
-        self.kernel.linear_sums(self.n, *self.data, self.neg_tau, self.consts, self.rows, parts)
-        return [float(v) for v in parts.sum(axis=0)]
-
-    def start(self, scale: float, *, rows_given: bool) -> list[float]:
-        parts = self._parts(5)
-        self.kernel.start(self.n, self.rho, self.lam, self.rows, float(scale),
-                          self._a_tau(scale), self.neg_tau, *self.data, self.consts,
-                          self.sums, self.delta0, self.w, parts, rows_given)
-        total = [float(v) for v in parts.sum(axis=0)]
-        return total
-
-    def candidate(self, scales: tuple[float, float]) -> list[float]:
-        parts = self._parts(3)
-        self.kernel.candidate(self.n, self.rho, self.delta0, self.w, float(scales[0]),
-                              float(scales[1]), self._a_tau(scales[1]), self.neg_tau,
-                              *self.data, self.consts, self.sums, self.n_new, self.rho_new,
-                              self.sums_new, parts)
-        return [float(v) for v in parts.sum(axis=0)]
-
-    def commit(self, scales: tuple[float, float], *, at: float) -> list[float]:
-        parts = self._parts(5)
-        self.kernel.commit(self.n, self.rho, self.lam, float(scales[0]), float(scales[1]),
-                           float(at), self.consts, self.sums, self.n_new, self.rho_new,
-                           self.sums_new, self.delta0, self.w, parts)
-        total = [float(v) for v in parts.sum(axis=0)]
-        return total
-
-
-def _check_options(scale: float | None, iterations: int, tol: float) -> None:
-    """FingerpsReconError unless scale is None or a finite number >= 0, iterations an
-    integer >= 0 and tol a finite number >= 0."""
-    if scale is not None and not (
-        isinstance(scale, (int, float, np.integer, np.floating))
-        and math.isfinite(scale) and scale >= 0
-    ):
-        raise FingerpsReconError(f"scale must be None (fit A) or a finite number >= 0, got {scale}")
-    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or (
-        iterations < 0
-    ):
-        raise FingerpsReconError(f"iterations must be an integer >= 0, got {iterations!r}")
-    if not (
-        isinstance(tol, (int, float, np.integer, np.floating)) and math.isfinite(tol) and tol >= 0
-    ):
-        raise FingerpsReconError(f"tol must be a finite number >= 0, got {tol}")
-
-
-def _check_images(images: np.ndarray) -> np.ndarray:
-    """The images (K, H, W) real, K >= 3, as an array (not copied); else FingerpsReconError."""
-    imgs = np.asarray(images)
-    if imgs.ndim != 3 or not (
-        np.issubdtype(imgs.dtype, np.integer) or np.issubdtype(imgs.dtype, np.floating)
-    ):
-        raise FingerpsReconError(
-            f"images must be a real (K, H, W) array, got shape {imgs.shape} dtype {imgs.dtype}"
-        )
-    if imgs.shape[0] < 3:
-        raise FingerpsReconError(
-            f"photometric stereo needs at least 3 lights, got {imgs.shape[0]}")
-    return imgs
-
-
-def _checked_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    m = np.asarray(mask)
-    if m.shape != tuple(shape) or m.dtype != bool:
-        raise FingerpsReconError(
-            f"mask must be a bool array of shape (H, W) = {tuple(shape)}, got {m.shape} {m.dtype}"
-        )
-    return m
-
-
-def _check_burst(
-    shape: tuple[int, int, int], mask: np.ndarray, init_normals: np.ndarray,
-    init_albedo: np.ndarray, usable: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """The burst's mask, initial normals and albedo and usable flags, checked against the
-    images' (K, H, W) (FingerpsReconError on bad ones); nothing large is converted."""
-    k, h, w = shape
-    m = _checked_mask(mask, (h, w))
-    n_in = np.asarray(init_normals)
-    if n_in.shape != (h, w, 3):
-        raise FingerpsReconError(
-            f"init_normals must have shape (H, W, 3) = ({h}, {w}, 3), got {n_in.shape}"
-        )
-    rho_in = np.asarray(init_albedo)
-    if rho_in.shape != (h, w):
-        raise FingerpsReconError(
-            f"init_albedo must have shape (H, W) = ({h}, {w}), got {rho_in.shape}"
-        )
-    use_in = None
-    if usable is not None:
-        use_in = np.asarray(usable)
-        if use_in.shape != (k, h, w) or use_in.dtype != bool:
-            raise FingerpsReconError(
-                f"usable must be a bool array of shape (K, H, W) = ({k}, {h}, {w}), got "
-                f"{use_in.shape} {use_in.dtype}"
-            )
-    return m, n_in, rho_in, use_in
-
-
-def _check_lighting(
-    lights: np.ndarray, shape: tuple[int, int], views: np.ndarray | tuple[float, float, float],
-    intensities: np.ndarray | None, params: SkinParams,
-) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray]:
-    """(lights, whether per pixel, views, intensities) checked for images of ``shape``
-    (FingerpsReconError on bad ones): distant lights (K, 3) and a single view (3,)
-    normalised (float64), intensities (K,) float64 or (K, H, W)."""
-    h, w = shape
-    lgt = np.asarray(lights)
-    if lgt.ndim == 2 and lgt.shape[1] == 3:
-        per_pixel = False
-    elif lgt.ndim == 4 and lgt.shape[1:] == (h, w, 3):
-        per_pixel = True
-    else:
-        raise FingerpsReconError(
-            f"lights must have shape (K, 3) or (K, H, W, 3) = (K, {h}, {w}, 3) to match "
-            f"images of {w} x {h} px, got {lgt.shape}"
-        )
-    k = lgt.shape[0]
-    if k < 3:
-        raise FingerpsReconError(f"photometric stereo needs at least 3 lights, got {k}")
-    if not isinstance(params, SkinParams):
-        raise FingerpsReconError(f"params must be a SkinParams, got {type(params).__name__}")
-    vw = np.asarray(views)
-    if vw.shape not in ((3,), (h, w, 3)):
-        raise FingerpsReconError(
-            f"views must have shape (3,) or (H, W, 3) = ({h}, {w}, 3), got {vw.shape}"
-        )
-    e = checked_intensities(intensities, shape=(k, h, w))
-    if not per_pixel:
-        lgt = _unit_or_raise(lgt.astype(np.float64), "lights")
-    if vw.ndim == 1:
-        vw = _unit_or_raise(vw.astype(np.float64), "views")
-    return lgt, per_pixel, vw, e
-
-
-def _unit_or_raise(v: np.ndarray, name: str) -> np.ndarray:
-    """``v`` (..., 3) normalised; FingerpsReconError if any vector is non-finite or zero."""
-    if not np.all(np.isfinite(v)):
-        raise FingerpsReconError(f"{name} contain non-finite values; check the calibration")
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    if np.any(norm == 0):
-        raise FingerpsReconError(f"{name} contain zero vectors; give unit directions")
-    return v / norm

@@ -32,13 +32,10 @@ import yaml
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
 from fingerps_recon.errors import BagRecoveryError, SessionBagError
+from fingerps_recon.sessions.bag_metadata import METADATA_FILENAME
 from fingerps_recon.sessions.mcap_records import DamagedRange, McapScan, McapSummary
 from fingerps_recon.sessions.message_definition import MessageDefinition
-from fingerps_recon.sessions.session_bag import (
-    METADATA_FILENAME,
-    ROSBAG2_METADATA_RECORD,
-    SessionBagWriter,
-)
+from fingerps_recon.sessions.session_bag import ROSBAG2_METADATA_RECORD, SessionBagWriter
 
 RECOVERY_METADATA_RECORD = "fingerps.recovery"
 

@@ -50,7 +50,7 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from typing import Any
@@ -59,6 +59,13 @@ import yaml
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
 from fingerps_recon.errors import MessageDefinitionError, SessionBagError
+from fingerps_recon.sessions.bag_metadata import (
+    INT64_MAX,
+    METADATA_FILENAME,
+    BagPiece,
+    BagSummary,
+    bag_metadata,
+)
 from fingerps_recon.sessions.message_definition import (
     MessageDefinition,
     load_message_definition,
@@ -67,17 +74,12 @@ from fingerps_recon.sessions.message_definition import (
 from fingerps_recon.sessions.rosbag2_yaml import yaml_lines
 from fingerps_recon.sessions.zstd_level import use_zstd_level
 
-METADATA_FILENAME = "metadata.yaml"
-METADATA_VERSION = 9
-STORAGE_IDENTIFIER = "mcap"
 PROFILE = "ros2"
 SERIALIZATION_FORMAT = "cdr"
 ROSBAG2_METADATA_RECORD = "rosbag2"
 DEFAULT_CHUNK_SIZE = 4 * 1024 * 1024
 """Bytes of messages per chunk: the most a killed recorder loses, and the compression unit."""
 
-INT64_MAX = 2**63 - 1
-"""rosbag2's starting_time of a bag without messages; also RMW_DURATION_INFINITE in ns."""
 
 
 class Compression(Enum):
@@ -140,62 +142,6 @@ class _Topic:
     definition: MessageDefinition
     channel_metadata: dict[str, str]
     message_count: int = 0
-
-
-@dataclass(frozen=True)
-class BagPiece:
-    """One MCAP file of a bag, as metadata.yaml's ``files`` lists it.
-
-    Attributes
-    ----------
-    path : Path
-        The MCAP file.
-    starting_time_ns : int
-        Earliest log time in it (`INT64_MAX` without messages).
-    duration_ns : int
-        Latest minus earliest log time.
-    message_count : int
-        Messages in it.
-    size_bytes : int
-        Bytes of the finished file.
-    """
-
-    path: Path
-    starting_time_ns: int = INT64_MAX
-    duration_ns: int = 0
-    message_count: int = 0
-    size_bytes: int = 0
-
-
-@dataclass(frozen=True)
-class BagSummary:
-    """What a finished bag holds.
-
-    Attributes
-    ----------
-    path : Path
-        The bag directory.
-    mcap_path : Path
-        Its first MCAP file (``DIR_0.mcap``).
-    pieces : tuple[BagPiece, ...]
-        Every MCAP file of the bag, in order (one unless the bag was split).
-    message_counts : dict[str, int]
-        Messages per topic, in the order the topics were added.
-    message_count : int
-        All messages.
-    starting_time_ns : int
-        Earliest log time (`INT64_MAX` when there is no message, as rosbag2 writes).
-    duration_ns : int
-        Latest minus earliest log time.
-    """
-
-    path: Path
-    mcap_path: Path
-    pieces: tuple[BagPiece, ...] = ()
-    message_counts: dict[str, int] = field(default_factory=dict)
-    message_count: int = 0
-    starting_time_ns: int = INT64_MAX
-    duration_ns: int = 0
 
 
 class SessionBagWriter:
@@ -650,36 +596,5 @@ class SessionBagWriter:
         )
 
     def _bag_metadata(self, summary: BagSummary, pieces: list[BagPiece]) -> dict[str, Any]:
-        """rosbag2's BagMetadata as YAML nodes (yaml.hpp convert<BagMetadata>::encode order)."""
-        topics = [
-            {
-                "topic_metadata": {
-                    "name": topic.name,
-                    "type": topic.type_name,
-                    "serialization_format": topic.serialization_format,
-                    "offered_qos_profiles": topic.offered_qos,
-                    "type_description_hash": topic.type_hash,
-                },
-                "message_count": topic.message_count,
-            }
-            for topic in self._topics.values()
-        ]
-        return {
-            "version": METADATA_VERSION,
-            "storage_identifier": STORAGE_IDENTIFIER,
-            "duration": {"nanoseconds": summary.duration_ns},
-            "starting_time": {"nanoseconds_since_epoch": summary.starting_time_ns},
-            "message_count": summary.message_count,
-            "topics_with_message_count": topics,
-            "compression_format": "",
-            "compression_mode": "",
-            "relative_file_paths": [piece.path.name for piece in pieces],
-            "files": [{
-                "path": piece.path.name,
-                "starting_time": {"nanoseconds_since_epoch": piece.starting_time_ns},
-                "duration": {"nanoseconds": piece.duration_ns},
-                "message_count": piece.message_count,
-            } for piece in pieces],
-            "custom_data": dict(self._custom_data) or None,
-            "ros_distro": self._ros_distro,
-        }
+        return bag_metadata(summary, pieces, self._topics.values(),
+                            custom_data=self._custom_data, ros_distro=self._ros_distro)

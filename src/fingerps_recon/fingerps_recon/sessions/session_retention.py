@@ -17,7 +17,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from fingerps_recon.sessions.session_bag import METADATA_FILENAME
+from fingerps_recon.sessions.bag_metadata import METADATA_FILENAME
 
 
 @dataclass(frozen=True)
