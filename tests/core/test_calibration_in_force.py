@@ -62,10 +62,10 @@ def test_a_flat_field_is_used_only_where_it_fits(rig: SimulatedRig) -> None:
     for other in ((7, h, w + 1), (6, h, w), (8, h, w)):
         assert held.flat_for(other) is None
     k = rig.camera_matrix
-    with_flat = held.prepare(k, (h, w), OPTIONS)
+    with_flat, _ = held.prepare(held.lights, k, (h, w), OPTIONS)
     assert with_flat.flat_gain is not None
     # another camera mode: prepared without the flat field, not refused
-    smaller = held.prepare(k, (h // 2, w // 2), OPTIONS)
+    smaller, _ = held.prepare(held.lights, k, (h // 2, w // 2), OPTIONS)
     assert smaller.flat_gain is None and held.prepared.count == 2
 
 

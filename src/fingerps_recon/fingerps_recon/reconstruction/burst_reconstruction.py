@@ -65,8 +65,8 @@ def reconstruct_burst(burst: Burst, calibration: CalibrationInForce, *,
     start = time.perf_counter()
     cache = calibration.prepared
     count = cache.count
-    maps = calibration.flat_for(images.shape)
-    prepared = cache.get(lights, maps, inputs.camera_matrix, images.shape[1:], options)
+    prepared, flat_used = calibration.prepare(lights, inputs.camera_matrix, images.shape[1:],
+                                              options)
     result = reconstruct_prepared(images, prepared, full_scale=inputs.full_scale,
                                   dark=inputs.dark, options=options,
                                   hk_initial_scale=cache.hk_scale)
@@ -81,4 +81,4 @@ def reconstruct_burst(burst: Burst, calibration: CalibrationInForce, *,
             f"{len(result.points_optical)} points although the mask found a finger; check "
             "the light calibration (recalibrate the lights and the flat field)")
     return BurstReconstruction(result, images, inputs.dark, inputs.full_scale,
-                               maps is not None, inputs.camera_matrix)
+                               flat_used, inputs.camera_matrix)

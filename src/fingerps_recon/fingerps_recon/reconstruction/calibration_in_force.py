@@ -124,11 +124,12 @@ class CalibrationInForce:
         maps = self.flat_maps
         return maps if maps is not None and maps.shape == tuple(shape) else None
 
-    def prepare(self, camera_matrix: np.ndarray, shape: tuple[int, int],
-                options: ReconstructionOptions) -> PreparedCalibration:
-        """The calibration in force prepared for a camera (``camera_matrix``, image ``shape``
-        (H, W)): kept from the last call when nothing changed (:class:`PreparedCalibrations`);
-        the flat field only where it fits (:meth:`flat_for`)."""
-        lights = self.require_lights()
+    def prepare(self, lights: LightCalibration, camera_matrix: np.ndarray,
+                shape: tuple[int, int], options: ReconstructionOptions
+                ) -> tuple[PreparedCalibration, bool]:
+        """``lights`` (the calibration in force, read once by the caller) prepared for a
+        camera (``camera_matrix``, image ``shape`` (H, W)) with the flat field where it fits
+        (:meth:`flat_for`), kept from the last call when nothing changed
+        (:class:`PreparedCalibrations`); and whether the flat field was used."""
         maps = self.flat_for((len(lights.directions), *shape))
-        return self.prepared.get(lights, maps, camera_matrix, shape, options)
+        return self.prepared.get(lights, maps, camera_matrix, shape, options), maps is not None

@@ -88,6 +88,7 @@ class _Made:
     start_ns: int
     made: BurstReconstruction
     outcome: int
+    settings: ReconSettings  # read once for the burst: its outputs are those it asked for
 
 
 class StageTimes:
@@ -325,14 +326,14 @@ class ReconstructionWorker:
         prepared = self.calibration.prepared
         try:
             count = prepared.count
-            self.calibration.prepare(np.asarray(camera.k, dtype=np.float64).reshape(3, 3),
-                                     shape, settings.options)
+            _, flat_used = self.calibration.prepare(
+                lights, np.asarray(camera.k, dtype=np.float64).reshape(3, 3), shape,
+                settings.options)
             if prepared.count != count:
-                flat = self.calibration.flat_for((len(lights.directions), *shape))
                 self._log.info(
                     f"calibration prepared for the {shape[1]}x{shape[0]} camera in "
                     f"{prepared.seconds * 1e3:.0f} ms"
-                    + ("" if flat is not None else " (no flat field)"))
+                    + ("" if flat_used else " (no flat field)"))
         except FingerpsError as exc:  # the first burst will say it again, counted
             self._log.warning(f"calibration not prepared: {exc}", throttle_duration_sec=10.0)
 
@@ -362,7 +363,7 @@ class ReconstructionWorker:
             self.last_problem = (f"burst {burst.burst_id}: flat field {maps.shape} does not "
                                  f"fit the images {made.images.shape}; not used")
             self._log.warning(self.last_problem, throttle_duration_sec=10.0)
-        return _Made(burst, arrival_ns, start_ns, made, outcome)
+        return _Made(burst, arrival_ns, start_ns, made, outcome, settings)
 
     def _deliver(self, item: _Made) -> None:
         """The second stage: a reconstructed burst's outputs built and handed to
@@ -370,7 +371,7 @@ class ReconstructionWorker:
         logged; a print that could not be made degrades the burst."""
         burst, made, outcome = item.burst, item.made, item.outcome
         unprinted: list[Burst] = []
-        self._publish(self._outputs(made, burst, self._settings(), unprinted))
+        self._publish(self._outputs(made, burst, item.settings, unprinted))
         if unprinted:
             outcome = _WARN
         result = made.result
