@@ -12,6 +12,7 @@ import signal
 import pytest
 from board_lines import BAD_LINES, RawBoard, request_line
 
+from fingerps_driver import errors
 from fingerps_driver.board.board_emulator import BoardEmulator, Fault
 from fingerps_driver.board.board_protocol import (
     MAX_LINE_BYTES,
@@ -21,16 +22,6 @@ from fingerps_driver.board.board_protocol import (
     decode_reply,
 )
 from fingerps_driver.board.led_board import BoardInfo, LedBoard, LedState
-from fingerps_driver.errors import (
-    BoardDisconnectedError,
-    BoardEmulatorError,
-    BoardError,
-    BoardNotFoundError,
-    BoardProtocolError,
-    BoardRejectedError,
-    BoardTimeoutError,
-    BoardUnsupportedError,
-)
 
 TIMEOUT_S = 0.05
 pytestmark = pytest.mark.usefixtures("no_emulator_threads_left")
@@ -101,12 +92,12 @@ def test_switching_each_led_lights_exactly_it(board, board_port):
 
 def test_out_of_range_is_rejected_not_retried(board):
     board.set_leds(0b1)
-    with pytest.raises(BoardRejectedError) as info:
+    with pytest.raises(errors.BoardRejectedError) as info:
         board.set_leds(1 << 7)
     assert info.value.code is ErrorCode.OUT_OF_RANGE
     assert board.resends == 0  # one request, not resent
     assert board.state().mask == 0b1
-    with pytest.raises(BoardRejectedError) as info:
+    with pytest.raises(errors.BoardRejectedError) as info:
         board.set_level(7, 10)
     assert info.value.code is ErrorCode.OUT_OF_RANGE
     with pytest.raises(ValueError):
@@ -201,10 +192,10 @@ def test_trigger_is_set_and_an_older_board_says_it_has_none(emulated_board, emul
         emulated_board.trigger(0, 65536)
     with BoardEmulator(link_path=str(tmp_path / "old"), with_trigger=False) as old, \
             LedBoard(old.port, timeout_s=TIMEOUT_S) as client:
-        with pytest.raises(BoardUnsupportedError, match="has no camera trigger") as info:
+        with pytest.raises(errors.BoardUnsupportedError, match="has no camera trigger") as info:
             client.trigger(100, 50)
         assert info.value.code is ErrorCode.UNKNOWN_COMMAND
-        assert isinstance(info.value, BoardRejectedError) and client.resends == 0
+        assert isinstance(info.value, errors.BoardRejectedError) and client.resends == 0
         assert client.set_leds(1) == 1  # the rest works
 
 
@@ -239,14 +230,14 @@ def test_slow_reply_beyond_timeout_is_retried_and_the_late_reply_ignored(emulate
 
 def test_more_dropped_replies_than_retries_times_out(emulated_board, emulator):
     emulator.inject(Fault.DROP_REPLY, 3)
-    with pytest.raises(BoardTimeoutError, match="3 attempt"):
+    with pytest.raises(errors.BoardTimeoutError, match="3 attempt"):
         emulated_board.set_leds(1)
     assert emulated_board.set_leds(2) == 2  # the board is usable again
 
 
 def test_more_corrupted_replies_than_retries_is_a_protocol_error(emulated_board, emulator):
     emulator.inject(Fault.CORRUPT_BYTE, 3)
-    with pytest.raises(BoardProtocolError):
+    with pytest.raises(errors.BoardProtocolError):
         emulated_board.ping()
     emulated_board.ping()
 
@@ -257,11 +248,11 @@ def test_disconnect_then_reconnect(tmp_path, emulator, emulated_board):
     assert not emulator.connected
     assert emulator.lit_mask == 0  # the board lost power
     assert not (tmp_path / "board").exists()
-    with pytest.raises(BoardDisconnectedError, match="vanished"):
+    with pytest.raises(errors.BoardDisconnectedError, match="vanished"):
         emulated_board.set_leds(1 << 3)
     assert not emulated_board.is_open
     emulated_board.close()  # idempotent after the failure
-    with pytest.raises(BoardNotFoundError):
+    with pytest.raises(errors.BoardNotFoundError):
         LedBoard(emulator.port).open()
 
     emulator.reconnect()
@@ -275,7 +266,7 @@ def test_disconnect_then_reconnect(tmp_path, emulator, emulated_board):
 
 def test_missing_port_names_the_path(tmp_path):
     path = str(tmp_path / "no_such_board")
-    with pytest.raises(BoardNotFoundError) as info:
+    with pytest.raises(errors.BoardNotFoundError) as info:
         LedBoard(path).open()
     assert path in str(info.value)
     assert "board_emulator" in str(info.value)
@@ -283,7 +274,7 @@ def test_missing_port_names_the_path(tmp_path):
 
 def test_commands_need_an_open_port(emulator):
     client = LedBoard(emulator.port)
-    with pytest.raises(BoardError, match="open"):
+    with pytest.raises(errors.BoardError, match="open"):
         client.ping()
     client.close()
     client.close()
@@ -293,7 +284,7 @@ def test_stop_is_idempotent_and_removes_the_link(emulator_threads, tmp_path):
     emu = BoardEmulator(link_path=str(tmp_path / "link"))
     emu.stop()  # before start: harmless
     emu.start()
-    with pytest.raises(BoardEmulatorError):
+    with pytest.raises(errors.BoardEmulatorError):
         emu.start()
     assert (tmp_path / "link").is_symlink()
     emu.stop()
@@ -305,7 +296,7 @@ def test_stop_is_idempotent_and_removes_the_link(emulator_threads, tmp_path):
 def test_link_path_never_clobbers_a_regular_file(tmp_path):
     path = tmp_path / "precious"
     path.write_text("keep me")
-    with pytest.raises(BoardEmulatorError, match="not a symlink"):
+    with pytest.raises(errors.BoardEmulatorError, match="not a symlink"):
         BoardEmulator(link_path=str(path)).start()
     assert path.read_text() == "keep me"
 
