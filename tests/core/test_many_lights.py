@@ -3,8 +3,8 @@
 A sphere cap rendered under 96 distant lights in a DiLiGenT-like cone (5-40 degrees from the
 camera axis, the attached shadows left out) is solved by the Lambertian solver (distant and
 per-pixel lights, Lambertian data) and by the HK solver (HK data with its
-scale A), each recovering the known normals. Before, the Lambertian solver refused more
-than 62 lights (its light patterns were uint64 bit masks).
+scale A), each recovering the known normals; more than 64 lights, so no per-pixel light
+pattern may be held in a 64-bit mask.
 """
 
 from __future__ import annotations

@@ -4,10 +4,9 @@ A real calib_node process (no driver: the frames are in the requests, rendered h
 simulated rig; the intrinsics come from a camera_info this test publishes). Each bad call
 gets ``success: false`` and a reason naming the input and what to do; the node keeps
 running, the calibration in force stays as it was, the next good call succeeds, no
-traceback is printed, and ``/diagnostics`` counts the calls. Before this was fixed the
-node died (exit 1, traceback) on sphere radii 1e-300, -1, inf and 1e300 and on 0x0 and
-1x1 flat-field frames; it took a 4x4 flat field and the parameters reference_point
-[0, 0, inf] and camera_name ''.
+traceback is printed, and ``/diagnostics`` counts the calls. The bad inputs include
+sphere radii 1e-300, -1, inf and 1e300, 0x0, 1x1 and 4x4 flat-field frames, and the
+parameters reference_point [0, 0, inf] and camera_name ''.
 """
 
 from __future__ import annotations

@@ -5,8 +5,7 @@ minimal stand-in of the launch API they use (the names and signatures of Jazzy's
 0.26 / launch_ros 0.26) and check its exit handler; the last one runs the real
 ``LaunchService`` (what ``ros2 launch`` runs) where launch_ros is installed and is skipped
 otherwise. Checked by hand against the Jazzy sources: a refused parameter (exit 2) stops the
-other four nodes (each "finished cleanly") and the run returns 1; before, the others ran on
-and Ctrl-C gave 0.
+other four nodes (each "finished cleanly") and the run returns 1.
 """
 
 from __future__ import annotations
