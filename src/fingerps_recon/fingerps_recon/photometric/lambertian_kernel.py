@@ -132,6 +132,37 @@ def _span(chunk, r0, c0, c1, mask):
 
 
 @inline_kernel
+def _measure(v, ax, ay, az, scr, lo, hi, acc, i, misfit):
+    """One measurement I_k = v with row a_k = (ax, ay, az) of pixel i: into its normal
+    equations (``misfit`` False: inside-the-span row _IN of ``scr``) or its misfit (True:
+    the solution rows _BX ... _OK)."""
+    if misfit:
+        _add_misfit(v, ax, ay, az, scr[_U(_OK + i)], scr[_U(_BX + i)], scr[_U(_BY + i)],
+                    scr[_U(_BZ + i)], lo, hi, acc, i)
+    else:
+        _add(v, ax, ay, az, scr[_U(_IN + i)], lo, hi, acc, i)
+
+
+@inline_kernel
+def _over_lights(images, rows, r, start, m, lo, hi, scr, acc, misfit):
+    """Every light's measurements of the window's pixels (columns start ... start + m - 1
+    of row r) into ``acc`` by :func:`_measure`, light by light, with the rows a_k read per
+    pixel (near lights) or once per light (distant ones). ``misfit`` is a constant at each
+    call, so that each call's loop is compiled for its one kind of sum."""
+    for k in range(images.shape[0]):
+        image = images[k, r]
+        if rows.shape[2] > 1 or rows.shape[3] > 1:
+            row_x, row_y, row_z = rows[k, 0, r], rows[k, 1, r], rows[k, 2, r]
+            for i in range(m):
+                c = _U(start + i)
+                _measure(image[c], row_x[c], row_y[c], row_z[c], scr, lo, hi, acc, i, misfit)
+        else:
+            ax, ay, az = rows[k, 0, 0, 0], rows[k, 1, 0, 0], rows[k, 2, 0, 0]
+            for i in range(m):
+                _measure(image[_U(start + i)], ax, ay, az, scr, lo, hi, acc, i, misfit)
+
+
+@inline_kernel
 def _accumulate(images, rows, mask, r, start, m, offset, span, lo, hi, scr, acc):
     """The chunk's normal equations: per pixel of the window (columns start ... start +
     m - 1), A (upper triangle), r = sum a_k I_k and the count of used lights into ``acc``
@@ -140,17 +171,7 @@ def _accumulate(images, rows, mask, r, start, m, offset, span, lo, hi, scr, acc)
     for i in range(m):
         own = (i >= offset) & (i < offset + span)
         scr[_U(_IN + i)] = _F1 if own and mask[r, _U(start + i)] else _F0
-    for k in range(images.shape[0]):
-        image = images[k, r]
-        if rows.shape[2] > 1 or rows.shape[3] > 1:
-            row_x, row_y, row_z = rows[k, 0, r], rows[k, 1, r], rows[k, 2, r]
-            for i in range(m):
-                c = _U(start + i)
-                _add(image[c], row_x[c], row_y[c], row_z[c], scr[_U(_IN + i)], lo, hi, acc, i)
-        else:
-            ax, ay, az = rows[k, 0, 0, 0], rows[k, 1, 0, 0], rows[k, 2, 0, 0]
-            for i in range(m):
-                _add(image[_U(start + i)], ax, ay, az, scr[_U(_IN + i)], lo, hi, acc, i)
+    _over_lights(images, rows, r, start, m, lo, hi, scr, acc, False)
 
 
 @inline_kernel
@@ -200,21 +221,7 @@ def _misfit(images, rows, r, start, m, lo, hi, scr, acc, parts, chunk):
         acc[_U(_AXX + i)] = _F0
         acc[_U(_AXY + i)] = _F0
         acc[_U(_AXZ + i)] = _F0
-    for k in range(images.shape[0]):
-        image = images[k, r]
-        if rows.shape[2] > 1 or rows.shape[3] > 1:
-            row_x, row_y, row_z = rows[k, 0, r], rows[k, 1, r], rows[k, 2, r]
-            for i in range(m):
-                c = _U(start + i)
-                _add_misfit(image[c], row_x[c], row_y[c], row_z[c], scr[_U(_OK + i)],
-                            scr[_U(_BX + i)], scr[_U(_BY + i)], scr[_U(_BZ + i)], lo, hi, acc,
-                            i)
-        else:
-            ax, ay, az = rows[k, 0, 0, 0], rows[k, 1, 0, 0], rows[k, 2, 0, 0]
-            for i in range(m):
-                _add_misfit(image[_U(start + i)], ax, ay, az, scr[_U(_OK + i)],
-                            scr[_U(_BX + i)], scr[_U(_BY + i)], scr[_U(_BZ + i)], lo, hi, acc,
-                            i)
+    _over_lights(images, rows, r, start, m, lo, hi, scr, acc, True)
     sq = total = count = 0.0
     for i in range(m):
         sq += float(acc[_U(_AXX + i)])
