@@ -71,7 +71,8 @@ from fingerps_recon.photometric.hk_solver import solve_hk
 from fingerps_recon.photometric.lambertian import solve_lambertian
 from fingerps_recon.photometric.normal_transform import enhance_ridges
 from fingerps_recon.photometric.ridge_visibility import ridge_visibility
-from fingerps_recon.surface.integration import height_to_distance, integrate_normals
+from fingerps_recon.surface.back_projection import height_to_distance
+from fingerps_recon.surface.integration import integrate_normals
 
 NOISES = (0.005, 0.01, 0.02)
 SETTINGS = ("distant", "distant_ff", "near")

@@ -78,10 +78,9 @@ from fingerps_recon.photometric.flat_field import apply_flat_field
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.lambertian import solve_lambertian
 from fingerps_recon.photometric.normal_transform import enhance_ridges
+from fingerps_recon.surface.back_projection import depth_to_points, height_to_distance
 from fingerps_recon.surface.integration import (
     IntegrationMethod,
-    depth_to_points,
-    height_to_distance,
     integrate_normals,
     integrate_normals_perspective,
 )

@@ -1,4 +1,5 @@
-"""Tests of fingerps_recon.surface.integration on analytic surfaces."""
+"""Tests of fingerps_recon.surface.integration (and the modules of its solvers) on analytic
+surfaces."""
 
 from __future__ import annotations
 
@@ -12,14 +13,30 @@ import scipy.ndimage
 from fingerps_driver.simulation import SimulatedRig
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.pixel_rays import pixel_rays_optical
-from fingerps_recon.surface import integration, integration_kernel
+from fingerps_recon.surface import integration_preconditioner
+from fingerps_recon.surface.back_projection import depth_to_points, height_to_distance
 from fingerps_recon.surface.integration import (
     IntegrationMethod,
-    depth_to_points,
-    height_to_distance,
     integrate_normals,
     integrate_normals_perspective,
 )
+from fingerps_recon.surface.integration_cg_kernel import outline_spectrum
+from fingerps_recon.surface.integration_polynomial_kernel import column_moments
+from fingerps_recon.surface.integration_polynomials import (
+    BASIS_A,
+    BASIS_B,
+    POLY_DEGREE,
+    poly_tables,
+)
+from fingerps_recon.surface.integration_preconditioner import (
+    column_pivots,
+    cosines,
+    precondition,
+)
+from fingerps_recon.surface.integration_rhs_kernel import assemble_rhs
+from fingerps_recon.surface.integration_solution_kernel import finish_runs
+from fingerps_recon.surface.integration_steps import orthographic_steps
+from fingerps_recon.surface.integration_topology_kernel import run_topology
 
 PIXEL = 2e-5  # metres per pixel
 
@@ -41,13 +58,13 @@ def _zero_mean(h: np.ndarray, mask: np.ndarray) -> np.ndarray:
 def applications(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """Counts the FAST solver's preconditioner applications (one entry per call)."""
     calls: list[int] = []
-    original = integration._precondition
+    original = integration_preconditioner.precondition
 
     def counted(buf: np.ndarray, pivots: tuple[np.ndarray, np.ndarray], **kwargs: bool) -> None:
         calls.append(1)
         original(buf, pivots, **kwargs)
 
-    monkeypatch.setattr(integration, "_precondition", counted)
+    monkeypatch.setattr(integration_preconditioner, "precondition", counted)
     return calls
 
 
@@ -437,8 +454,8 @@ def test_the_preconditioner_is_the_rectangles_pseudo_inverse(shape: tuple[int, i
     rng = np.random.default_rng(7)
     r = rng.standard_normal(shape).astype(np.float32)
     got = r.copy()
-    pivots = integration._column_pivots(shape)
-    integration._precondition(got, pivots)
+    pivots = column_pivots(shape)
+    precondition(got, pivots)
     ref = _rectangle_pseudo_inverse(r)
     # float32: a few roundings (2^-24 each) per row transform and per step of the column
     # recurrence, relative to the largest output value (L^+ amplifies the smooth modes and
@@ -451,20 +468,19 @@ def test_the_preconditioner_is_the_rectangles_pseudo_inverse(shape: tuple[int, i
     rows, cols = (pixels // w2).astype(np.int32), (pixels % w2).astype(np.int32)
     values = rng.standard_normal(n).astype(np.float32)
     sparse = np.zeros(shape, np.float32)
-    integration_kernel.outline_spectrum(values, sparse, rows, cols, n,
-                                        integration._cosines(w2))
-    integration._precondition(sparse, pivots, transformed=True)
+    outline_spectrum(values, sparse, rows, cols, n, cosines(w2))
+    precondition(sparse, pivots, transformed=True)
     dense = np.zeros(shape, np.float32)
     dense[rows, cols] = values
-    integration._precondition(dense, pivots)
+    precondition(dense, pivots)
     assert np.abs(sparse - dense).max() < 2e-6 * np.abs(dense).max()  # measured 1.5e-7
 
 
 def test_the_cosine_table_is_the_orthonormal_dct() -> None:
     w2 = 24
     # rows: the DCT of each unit vector; float32 rounding of values <= 1: half an ulp, 6e-8
-    np.testing.assert_allclose(integration._cosines(w2),
-                               scipy.fft.dct(np.eye(w2), norm="ortho", axis=1), atol=1e-7)
+    np.testing.assert_allclose(cosines(w2), scipy.fft.dct(np.eye(w2), norm="ortho", axis=1),
+                               atol=1e-7)
 
 
 def test_runs_give_the_outline_components_and_gram_matrix() -> None:
@@ -483,28 +499,28 @@ def test_runs_give_the_outline_components_and_gram_matrix() -> None:
     normals[..., 2] = 1.0
     h, w = mask.shape
     w2 = 16  # two padding columns: the second component's right end is outline
-    steps = integration._orthographic_steps(normals, (slice(0, h), slice(0, w)), min_nz=0.1)
-    poly = integration._poly_tables(h, w)
+    steps = orthographic_steps(normals, (slice(0, h), slice(0, w)), min_nz=0.1)
+    poly = poly_tables(h, w)
     b = np.empty((h, w2), np.float32)
-    col_moments = np.empty((integration._POLY_DEGREE + 1, w))
+    col_moments = np.empty((POLY_DEGREE + 1, w))
     room = h * (w // 2 + 1)
     run_start, run_stop = np.empty(room, np.int32), np.empty(room, np.int32)
     row_first = np.empty(h + 1, np.int32)
     inside = mask.view(np.uint8)
-    n_runs, b_norm2 = integration_kernel.assemble_rhs(
+    n_runs, b_norm2 = assemble_rhs(
         steps.normals, inside, 0, 0, h, w, steps.x_n, steps.y_n, steps.skew, steps.min_nz,
         steps.fx, steps.fy, poly.row_powers, b, col_moments, run_start, run_stop, row_first)
     labels = np.empty(n_runs, np.int32)
     outline_rows, outline_cols = np.empty(h * w, np.int32), np.empty(h * w, np.int32)
-    n_basis = integration._A.size
+    n_basis = BASIS_A.size
     gram = np.empty((n_basis, n_basis))
-    degree = integration._POLY_DEGREE
+    degree = POLY_DEGREE
     mask_moments = np.empty((degree + 1, degree + 1))
     segments = np.empty((2, 2, w + 1), np.int32)
-    n_comp, n_out = integration_kernel.run_topology(
+    n_comp, n_out = run_topology(
         run_start[:n_runs], run_stop[:n_runs], row_first, w2, poly.pair_prefix,
-        poly.power_prefix, poly.row_powers, poly.row_steps, integration._A, integration._B,
-        labels, outline_rows, outline_cols, gram, mask_moments, segments[0], segments[1])
+        poly.power_prefix, poly.row_powers, poly.row_steps, BASIS_A, BASIS_B, labels,
+        outline_rows, outline_cols, gram, mask_moments, segments[0], segments[1])
 
     # Runs: the mask row by row (exact: integers).
     rebuilt = np.zeros_like(mask)
@@ -551,8 +567,7 @@ def test_runs_give_the_outline_components_and_gram_matrix() -> None:
     # cancel ~1e-16 of w terms).
     s = poly.col_powers[1]
     t = poly.row_powers[:, 1]
-    basis = np.array([np.outer(t**b, s**a) for a, b in zip(integration._A, integration._B,
-                                                           strict=True)])
+    basis = np.array([np.outer(t**b, s**a) for a, b in zip(BASIS_A, BASIS_B, strict=True)])
     steps_h = (basis[:, :, 1:] - basis[:, :, :-1])[:, hor]
     steps_v = (basis[:, 1:, :] - basis[:, :-1, :])[:, ver]
     ref_gram = steps_h @ steps_h.T + steps_v @ steps_v.T
@@ -565,8 +580,7 @@ def test_runs_give_the_outline_components_and_gram_matrix() -> None:
     np.testing.assert_allclose(mask_moments, ref_moments, atol=1e-12 * mask.sum())
     # Moments V^T b (float64 sums of float32 b times powers).
     moments = np.empty(n_basis)
-    integration_kernel.column_moments(col_moments, poly.col_powers, integration._A,
-                                      integration._B, moments)
+    column_moments(col_moments, poly.col_powers, BASIS_A, BASIS_B, moments)
     np.testing.assert_allclose(moments, basis.reshape(n_basis, -1) @ b[:, :w].ravel(),
                                atol=1e-12 * np.abs(b).sum())
 
@@ -585,8 +599,8 @@ def test_the_exponential_is_within_an_ulp_of_numpys(reach: float) -> None:
     run_start, run_stop = np.array([1], np.int32), np.array([values.size + 1], np.int32)
     row_first = np.array([0, 0, 1, 1], np.int32)
     labels = np.zeros(1, np.int32)
-    integration_kernel.finish_runs(out, 0, 0, 3, values.size + 2, run_start, run_stop,
-                                   row_first, labels, np.array([0.5]), 1.0, -2.0, True)
+    finish_runs(out, 0, 0, 3, values.size + 2, run_start, run_stop, row_first, labels,
+                np.array([0.5]), 1.0, -2.0, True)
     expected = np.exp(values.astype(np.float32).astype(np.float64) - 0.5 - 2.0)
     np.testing.assert_allclose(out[1, 1:-1], expected.astype(np.float32), rtol=2.4e-7)
     assert np.isnan(out[0]).all() and np.isnan(out[2]).all()

@@ -37,7 +37,12 @@ KERNEL_MODULES = ("fingerps_recon.photometric.hk_kernel",
                   "fingerps_recon.photometric.lambertian_kernel",
                   "fingerps_recon.photometric.normal_transform_kernel",
                   "fingerps_recon.surface.back_projection_kernel",
-                  "fingerps_recon.surface.integration_kernel",
+                  "fingerps_recon.surface.integration_cg_kernel",
+                  "fingerps_recon.surface.integration_polynomial_kernel",
+                  "fingerps_recon.surface.integration_rhs_kernel",
+                  "fingerps_recon.surface.integration_solution_kernel",
+                  "fingerps_recon.surface.integration_sum_kernel",
+                  "fingerps_recon.surface.integration_topology_kernel",
                   "fingerps_recon.surface.print_kernel")
 _SIZE = 40          # synthetic image side, pixels
 _RADIUS = 16.0      # synthetic hemisphere radius, pixels

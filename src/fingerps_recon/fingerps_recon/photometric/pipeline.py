@@ -39,11 +39,8 @@ from fingerps_recon.photometric.hk_solver import HKLighting, prepare_hk_lighting
 from fingerps_recon.photometric.lambertian import LightRows, light_rows, solve_lambertian
 from fingerps_recon.photometric.normal_transform import enhance_ridges
 from fingerps_recon.photometric.pixel_rays import near_light_directions_ps, view_directions_ps
-from fingerps_recon.surface.integration import (
-    depth_to_points,
-    integrate_normals,
-    integrate_normals_perspective,
-)
+from fingerps_recon.surface.back_projection import depth_to_points
+from fingerps_recon.surface.integration import integrate_normals, integrate_normals_perspective
 
 # Smallest cosine between a near light and the white target's normal used to turn the
 # target's brightness into irradiance (a steeper light would amplify the target's noise).

@@ -1,5 +1,5 @@
 """Compiled (numba) back-projection of a depth map to points
-(:func:`surface.integration.depth_to_points`, which states the equations).
+(:func:`surface.back_projection.depth_to_points`, which states the equations).
 
 One pass in raster order over the mask's bounding box writes each kept pixel's point and
 flat index: no planes of the box, no boolean gathers. Runs on the calling thread
