@@ -93,13 +93,13 @@ RUNS = 15
 MIN_RUNS = 7
 KERNEL_ITERATIONS = 10
 # Floating-point operations of one HK LM iteration with A held (the iteration every burst
-# after the first runs: photometric/hk_kernel.py solve_held), counted in the source (add,
-# mul, fma = 2, div, sqrt, min/max each 1; loads, stores, selects, floor and integer ops not
-# counted): per measurement (pixel x light) in _model_sums: c_i 5, lighting selects 2, 1/c_i
-# 1, q 2, the exponent 2 and exp() 16, e p S 3, e c_i 1, A P 1, u 2, r 3, w_q 3, capped
-# inverses 2, df/dc_r 4, df/dc_i 6, j1, j2 10, the 15 sums 30: 93. Per pixel: the
-# candidate's step and normal (_trial_state) 33, _view_terms 14, _keep_better 30, _steps
-# 70, the predicted decrease 6: 153.
+# after the first runs: photometric/hk_held_kernel.py solve_held), counted in the source
+# (add, mul, fma = 2, div, sqrt, min/max each 1; loads, stores, selects, floor and integer
+# ops not counted): per measurement (pixel x light) in model_sums (hk_model_kernel.py): c_i
+# 5, lighting selects 2, 1/c_i 1, q 2, the exponent 2 and exp() 16, e p S 3, e c_i 1, A P 1,
+# u 2, r 3, w_q 3, capped inverses 2, df/dc_r 4, df/dc_i 6, j1, j2 10, the 15 sums 30: 93.
+# Per pixel: the candidate's step and normal (trial_state, hk_step_kernel.py) 33,
+# view_terms 14, keep_better 30, steps 70, the predicted decrease 6: 153.
 FLOPS_PER_MEASUREMENT = 93
 FLOPS_PER_PIXEL = 153
 WORKING_DISTANCE_M = 0.09

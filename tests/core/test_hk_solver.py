@@ -1,6 +1,6 @@
 """Tests of fingerps_recon.photometric.hk_solver on rendered HK and Lambertian scenes.
 
-The solver runs the compiled passes of fingerps_recon.photometric.hk_kernel (numba is
+The solver runs the compiled passes of fingerps_recon.photometric.hk_*_kernel (numba is
 required); its minimum is checked against scipy's least_squares per pixel (float64), on a
 small scene and on the rig's finger with the node's per-pixel lights. The first test of a
 session compiles the kernels or loads them from numba's on-disk cache.
@@ -291,7 +291,7 @@ def test_numba_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch)
         monkeypatch.setattr(kernel_threads, "_LIMIT", [threads])
         results.append(_solve(images, mask, iterations=6, tol=0.0)[0])
     one, two = results
-    assert mask.sum() > 4 * hk_solver._kernel().CHUNK
+    assert mask.sum() > 4 * hk_solver._kernels().model.CHUNK
     np.testing.assert_array_equal(one.normals, two.normals)
     np.testing.assert_array_equal(one.albedo, two.albedo)
     assert one.scale == two.scale and one.cost_history == two.cost_history
@@ -300,7 +300,7 @@ def test_numba_threads_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch)
 def test_without_numba_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
     inputs = _good_inputs()
     images, lights = inputs.pop("images"), inputs.pop("lights")
-    monkeypatch.setattr(hk_solver, "_KERNEL", [None, "ImportError: No module named 'numba'"])
+    monkeypatch.setattr(hk_solver, "_KERNELS", [None, "ImportError: No module named 'numba'"])
     with pytest.raises(FingerpsReconError, match="install numba"):
         solve_hk(images, lights, **inputs)
 

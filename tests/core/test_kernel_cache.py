@@ -72,7 +72,11 @@ def test_the_kernels_recompile_after_an_edit_of_symmetric_solve(tmp_path):
 
 def test_the_modules_a_kernel_module_inlines_are_found_from_its_kernels():
     from fingerps_recon.photometric import (
-        hk_kernel,
+        hk_gather_kernel,
+        hk_held_kernel,
+        hk_joint_kernel,
+        hk_model_kernel,
+        hk_step_kernel,
         kernel_compile,
         lambertian_kernel,
         normal_transform_kernel,
@@ -81,6 +85,14 @@ def test_the_modules_a_kernel_module_inlines_are_found_from_its_kernels():
     from fingerps_recon.photometric.kernel_compile import inlined_modules
 
     # The compile options count as inlined too: an edit of them recompiles every kernel.
-    for module in (hk_kernel, lambertian_kernel):
-        assert inlined_modules(vars(module)) == [kernel_compile, symmetric_solve]
+    assert inlined_modules(vars(lambertian_kernel)) == [kernel_compile, symmetric_solve]
     assert inlined_modules(vars(normal_transform_kernel)) == [kernel_compile]
+    assert inlined_modules(vars(hk_model_kernel)) == [kernel_compile]
+    assert inlined_modules(vars(hk_gather_kernel)) == [hk_model_kernel, kernel_compile]
+    assert inlined_modules(vars(hk_step_kernel)) == [hk_model_kernel, kernel_compile,
+                                                     symmetric_solve]
+    # The passes' caches follow also what the step helpers they call inline.
+    assert hk_held_kernel._COMPILED_FROM == [hk_gather_kernel, hk_model_kernel, hk_step_kernel,
+                                             kernel_compile, symmetric_solve]
+    assert hk_joint_kernel._COMPILED_FROM == [hk_model_kernel, hk_step_kernel, kernel_compile,
+                                              symmetric_solve]

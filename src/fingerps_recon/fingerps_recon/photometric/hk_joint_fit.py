@@ -1,7 +1,7 @@
 """The HK solve with the global scale A fitted jointly with the pixels (a first burst,
 ``offline_recon``): the Levenberg–Marquardt loop of ``photometric.hk_solver``'s module
 docstring over the whole burst, A's step from the Schur complement, each iteration two
-compiled passes over the pixels (``photometric.hk_kernel``)."""
+compiled passes over the pixels (``photometric.hk_joint_kernel``)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from fingerps_recon.photometric.hk_settings import (
     LAMBDA_START,
     LAMBDA_UP,
     N_SUMS,
-    kernel_consts,
 )
 
 
@@ -46,7 +45,7 @@ def fit_jointly(
     done = 0
     while done < iterations:
         done += 1
-        # Joint step: A's part from the Schur complement (hk_kernel._steps), then the
+        # Joint step: A's part from the Schur complement (hk_step_kernel.steps), then the
         # pixels'.
         trial = a_scale
         g_a, c_delta, d_sum, c_w = schur
@@ -80,7 +79,7 @@ def fit_jointly(
 
 
 class JointPasses:
-    """The per-pixel passes of :func:`fit_jointly` (:mod:`photometric.hk_kernel`), with the
+    """The per-pixel passes of :func:`fit_jointly` (:mod:`photometric.hk_joint_kernel`), with the
     state they update in place: one compiled, vectorised loop over the chunks of pixels per
     pass, in numba's threads (``numba_threads``), the global sums added up per chunk in a
     fixed order. Each pass returns its global sums: ``linear`` the numerator and
@@ -88,12 +87,12 @@ class JointPasses:
     parts (P.r, (J^T P).delta0, P.P, (J^T P).w); ``candidate`` the parts of the choice at
     the trial A (chosen cost, P.r, P.P) (``start`` forms the
     linear fit's per-pixel sums itself unless ``linear`` did). ``data``: (meas, views)
-    (:func:`_solve`); ``n`` (3, Np) and ``rho`` (Np,) float32 the initial
-    state."""
+    (:func:`_solve`); ``consts`` the kernels' constants (``hk_settings.kernel_consts``);
+    ``n`` (3, Np) and ``rho`` (Np,) float32 the initial state."""
 
     def __init__(
-        self, kernel: ModuleType, data: tuple[np.ndarray, ...], *, tau: float, n: np.ndarray,
-        rho: np.ndarray,
+        self, kernel: ModuleType, data: tuple[np.ndarray, ...], *, consts: np.ndarray,
+        tau: float, n: np.ndarray, rho: np.ndarray,
     ) -> None:
         f32 = np.float32
         self.kernel, self.data, self.n, self.rho = kernel, data, n, rho
@@ -101,7 +100,7 @@ class JointPasses:
         self.chunks = count // kernel.CHUNK
         self.tau = tau
         self.neg_tau = f32(-tau)
-        self.consts = kernel_consts(kernel)
+        self.consts = consts
         self.lam = np.full(count, LAMBDA_START, f32)
         self.sums = np.zeros((N_SUMS, count), f32)
         self.sums_new = np.zeros((N_SUMS, count), f32)

@@ -20,12 +20,12 @@ LAMBDA_DOWN = 1.0 / 3.0
 LAMBDA_UP = 10.0
 LAMBDA_MIN = 1e-9
 LAMBDA_MAX = 1e9
-N_SUMS = 15  # Gauss–Newton sums a pixel (hk_kernel.N_SUMS)
+N_SUMS = 15  # Gauss–Newton sums a pixel (hk_model_kernel.N_SUMS)
 
 
 def kernel_consts(kernel: ModuleType) -> np.ndarray:
     """The kernels' float32 constants (floors, damping factors), indexed as in
-    :mod:`photometric.hk_kernel`."""
+    :mod:`photometric.hk_model_kernel`."""
     consts = np.zeros(kernel.N_CONSTS, np.float32)
     for index, value in (
         (kernel.VALUE_FLOOR, VALUE_FLOOR), (kernel.DERIVATIVE_FLOOR, DERIVATIVE_FLOOR),

@@ -40,7 +40,7 @@ solver on dE/dx = 0; any method reaching the same minimum serves, NOTES §2):
 A held (``scale`` given, e.g. the A a previous burst of the same rig refitted: A depends on
 the skin and the LEDs' power, not on the pose). The pixels are then independent: one
 compiled pass gathers, solves and writes out each chunk of pixels while it stays in the
-core's cache (``hk_kernel.solve_held``), with the same steps (rho in closed form for the
+core's cache (``hk_held_kernel.solve_held``), with the same steps (rho in closed form for the
 held A, then Levenberg–Marquardt, each pixel keeping the better of its state and its
 candidate); a chunk stops once the decrease its next steps promise (the Gauss–Newton
 model's, at least (J^T r) . delta) is at most ``tol`` times its cost, so no iteration is
@@ -56,8 +56,9 @@ E = exp(-tau_d (1/c_i + 1/c_r)) is evaluated exactly: for the finger constants i
 3e-4 at every angle (tau_d (1/c_i + 1/c_r) >= 2 tau_d = 8.3, never above the 30 at which it
 could be dropped), small but not negligible at float32 precision.
 
-Arithmetic. The per-pixel passes are compiled (:mod:`photometric.hk_kernel`, numba): each
-pass one loop over chunks of pixels, vectorised, in up to
+Arithmetic. The per-pixel passes are compiled (numba: :mod:`photometric.hk_model_kernel`
+the model and its layout, ``hk_gather_kernel``, ``hk_step_kernel``, ``hk_held_kernel``,
+``hk_joint_kernel``): each pass one loop over chunks of pixels, vectorised, in up to
 :func:`fingerps_recon.photometric.kernel_threads.thread_limit` numba threads; the
 per-measurement work in float32, the per-pixel sums and state float32, A and the totals
 float64. float32 limits how closely a pixel's minimum is approached: its cost stays within
@@ -71,7 +72,7 @@ from __future__ import annotations
 
 import importlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from types import ModuleType
 
 import numpy as np
@@ -89,23 +90,36 @@ from fingerps_recon.photometric.hk_model import PhaseConvention, SkinParams
 from fingerps_recon.photometric.hk_settings import LAMBDA_START, MIN_INIT_CR, kernel_consts
 from fingerps_recon.photometric.kernel_threads import numba_threads
 
-# The compiled kernels (photometric.hk_kernel), imported once per process: [module] or
-# [None, reason] if numba cannot be set up.
-_KERNEL: list = []
+
+@dataclass(frozen=True)
+class _Kernels:
+    """The modules of the compiled kernels (numba), ``photometric.hk_<field>_kernel``."""
+
+    model: ModuleType  # the model and the passes' layout (chunk size, rows, flags)
+    gather: ModuleType  # the lighting of a calibration, a burst's pixels gathered
+    held: ModuleType  # the solve with A held
+    joint: ModuleType  # the passes of the fit with A fitted jointly
 
 
-def _kernel() -> ModuleType:
-    """:mod:`photometric.hk_kernel`, or FingerpsReconError saying why numba is missing."""
-    if not _KERNEL:
+# The compiled kernels, imported once per process: [_Kernels] or [None, reason] if numba
+# cannot be set up.
+_KERNELS: list = []
+
+
+def _kernels() -> _Kernels:
+    """The compiled kernels' modules, or FingerpsReconError saying why numba is missing."""
+    if not _KERNELS:
         try:
-            _KERNEL.append(importlib.import_module(f"{__package__}.hk_kernel"))
+            _KERNELS.append(_Kernels(**{
+                field.name: importlib.import_module(f"{__package__}.hk_{field.name}_kernel")
+                for field in fields(_Kernels)}))
         except Exception as exc:  # ImportError, or numba failing to set itself up
-            _KERNEL.extend([None, f"{type(exc).__name__}: {exc}"])
-    if _KERNEL[0] is None:
+            _KERNELS.extend([None, f"{type(exc).__name__}: {exc}"])
+    if _KERNELS[0] is None:
         raise FingerpsReconError(
-            f"the HK solver's compiled kernels cannot be imported ({_KERNEL[1]}); install "
+            f"the HK solver's compiled kernels cannot be imported ({_KERNELS[1]}); install "
             "numba and llvmlite (requirements.txt)")
-    return _KERNEL[0]
+    return _KERNELS[0]
 
 
 @dataclass(frozen=True)
@@ -174,7 +188,7 @@ class HKLighting:
         mask it was prepared for).
     terms, views, bad : arrays
         Light directions, e p and e; view directions; bad-direction flags
-        (:func:`photometric.hk_kernel.lighting_terms`).
+        (:func:`photometric.hk_gather_kernel.lighting_terms`).
     """
 
     shape: tuple[int, int]
@@ -201,7 +215,7 @@ def prepare_hk_lighting(
     inconsistent shapes or bad directions."""
     h, w = (int(v) for v in shape)
     lgt, per_pixel, vw, e = check_lighting(lights, (h, w), views, intensities, params)
-    kernel = _kernel()
+    kernels = _kernels()
     k = lgt.shape[0]
     hw = h * w
     if mask is None:
@@ -213,10 +227,10 @@ def prepare_hk_lighting(
     f32 = np.float32
     g = f32(params.g)
     hg = np.array([1 + g * g, 2 * g, 1 - g * g, f32(4 * math.pi)], f32)
-    terms = np.empty((k, kernel.N_TERMS, pixels.size), f32)
+    terms = np.empty((k, kernels.model.N_TERMS, pixels.size), f32)
     v_out = np.empty((3, pixels.size), f32)
     bad = np.empty(pixels.size, np.uint8)
-    kernel.lighting_terms(
+    kernels.gather.lighting_terms(
         pixels, _float_array(lgt, (k, hw, 3) if per_pixel else (k, 1, 3)),
         _float_array(vw, (hw, 3) if vw.ndim == 3 else (1, 3)),
         _float_array(e, (k, hw) if e.ndim == 3 else (k, 1)), hg,
@@ -330,7 +344,7 @@ def solve_hk_prepared(
     to get there from the global linear fit (None: that fit). Raises
     ``FingerpsReconError`` on inputs that do not fit the lighting (size, light count, a
     mask pixel whose chunk was not prepared)."""
-    kernel = _kernel()
+    kernels = _kernels()
     imgs = check_images(images)
     check_options(scale, iterations, tol)
     if initial_scale is not None:
@@ -348,7 +362,7 @@ def solve_hk_prepared(
             "whole image (prepare_hk_lighting without a mask)")
     fit, iterations, tol = scale is None, int(iterations), float(tol)
     with numba_threads():
-        return _solve(kernel, imgs, lighting, cand, n_in, rho_in, use_in,
+        return _solve(kernels, imgs, lighting, cand, n_in, rho_in, use_in,
                       scale=scale, start=scale if scale is not None else initial_scale,
                       fit=fit, iterations=iterations, tol=tol)
 
@@ -364,13 +378,13 @@ def _nothing_valid(shape: tuple[int, int], scale: float | None) -> HKResult:
 
 
 def _solve(
-    kernel: ModuleType, imgs: np.ndarray, lighting: HKLighting, cand: np.ndarray,
+    kernels: _Kernels, imgs: np.ndarray, lighting: HKLighting, cand: np.ndarray,
     normals_in: np.ndarray, albedo_in: np.ndarray, usable: np.ndarray | None, *,
     scale: float | None, start: float | None, fit: bool, iterations: int, tol: float,
 ) -> HKResult:
     """The mask's pixels ``cand`` gathered into the passes' layout
-    (:mod:`photometric.hk_kernel`), the passes, and the result images, each a compiled loop
-    over the pixels."""
+    (:mod:`photometric.hk_model_kernel`), the passes, and the result images, each a compiled
+    loop over the pixels."""
     k, h, w = imgs.shape
     hw = h * w
     f32 = np.float32
@@ -384,33 +398,34 @@ def _solve(
     rho_in = _float_array(albedo_in, (hw,))
     if cand.size == 0:
         return _nothing_valid((h, w), scale)
-    chunks = -(-cand.size // kernel.CHUNK)
+    layout = kernels.model
+    chunks = -(-cand.size // layout.CHUNK)
     if not fit:
-        return _solve_held(kernel, imgs, lighting, cand, n_in, rho_in, use_in, chunks,
+        return _solve_held(kernels, imgs, lighting, cand, n_in, rho_in, use_in, chunks,
                            scale=float(scale), iterations=iterations, tol=tol)
-    padded = chunks * kernel.CHUNK
-    meas = np.empty((chunks, k, kernel.N_MEAS, kernel.CHUNK), f32)
+    padded = chunks * layout.CHUNK
+    meas = np.empty((chunks, k, layout.N_MEAS, layout.CHUNK), f32)
     v_dirs = np.empty((3, padded), f32)
     n0 = np.empty((3, padded), f32)
     rho0 = np.empty(padded, f32)
     solved = np.empty(cand.size, bool)
     counts = np.empty(cand.size, np.float64)
     flags = np.empty(chunks, np.uint8)
-    kernel.gather(cand, lighting.index, imgs, use_in, n_in, rho_in, lighting.terms,
-                  lighting.views, lighting.bad, MIN_INIT_CR, meas, v_dirs, n0, rho0, solved,
-                  counts, flags)
+    kernels.gather.gather(cand, lighting.index, imgs, use_in, n_in, rho_in, lighting.terms,
+                          lighting.views, lighting.bad, MIN_INIT_CR, meas, v_dirs, n0, rho0,
+                          solved, counts, flags)
     if not solved.any():
         return _nothing_valid((h, w), scale)
-    _check_flags(kernel, flags)
-    passes = JointPasses(kernel, (meas, v_dirs), tau=float(lighting.params.optical_depth), n=n0,
-                     rho=rho0)
+    _check_flags(layout, flags)
+    passes = JointPasses(kernels.joint, (meas, v_dirs), consts=kernel_consts(layout),
+                         tau=float(lighting.params.optical_depth), n=n0, rho=rho0)
     a_scale, history, done = fit_jointly(passes, scale=start, iterations=iterations, tol=tol)
     normals = np.zeros((hw, 3), np.float32)
     albedo = np.zeros(hw, np.float32)
     rms = np.zeros(hw, np.float32)
     valid = np.zeros(hw, bool)
-    kernel.finish(cand, solved, passes.n, passes.rho, passes.sums, counts, normals, albedo,
-                  rms, valid)
+    kernels.joint.finish(cand, solved, passes.n, passes.rho, passes.sums, counts, normals,
+                         albedo, rms, valid)
     return HKResult(
         normals=normals.reshape(h, w, 3), albedo=albedo.reshape(h, w), scale=float(a_scale),
         valid=valid.reshape(h, w), residual_rms=rms.reshape(h, w), iterations=done,
@@ -419,13 +434,13 @@ def _solve(
 
 
 def _solve_held(
-    kernel: ModuleType, imgs: np.ndarray, lighting: HKLighting, cand: np.ndarray,
+    kernels: _Kernels, imgs: np.ndarray, lighting: HKLighting, cand: np.ndarray,
     normals_in: np.ndarray, albedo_in: np.ndarray, usable: np.ndarray, chunks: int, *,
     scale: float, iterations: int, tol: float,
 ) -> HKResult:
     """:func:`_solve` with A held at ``scale``: the pixels are independent, so one compiled
     pass gathers, solves and writes out each chunk while it is in the core's cache
-    (:func:`photometric.hk_kernel.solve_held`), and A's linear fit at the solution is
+    (:func:`photometric.hk_held_kernel.solve_held`), and A's linear fit at the solution is
     the ``refit_scale`` for the next burst."""
     hw = imgs.shape[1]
     h, w = lighting.shape
@@ -438,12 +453,13 @@ def _solve_held(
     flags = np.zeros(chunks, np.uint8)
     parts = np.zeros((chunks, 5), np.float64)
     tau = float(lighting.params.optical_depth)
-    kernel.solve_held(cand, lighting.index, imgs, usable, normals_in, albedo_in,
-                      lighting.terms, lighting.views, lighting.bad, MIN_INIT_CR, scale,
-                      np.float32(scale * tau), np.float32(-tau), kernel_consts(kernel),
-                      np.float32(LAMBDA_START), iterations, tol, solved, counts, normals,
-                      albedo, rms, valid, flags, parts)
-    _check_flags(kernel, flags)
+    kernels.held.solve_held(cand, lighting.index, imgs, usable, normals_in, albedo_in,
+                            lighting.terms, lighting.views, lighting.bad, MIN_INIT_CR, scale,
+                            np.float32(scale * tau), np.float32(-tau),
+                            kernel_consts(kernels.model), np.float32(LAMBDA_START),
+                            iterations, tol, solved, counts, normals, albedo, rms, valid,
+                            flags, parts)
+    _check_flags(kernels.model, flags)
     if not solved.any():
         return _nothing_valid((h, w), scale)
     initial, final, _, num, den = parts.sum(axis=0)
@@ -457,7 +473,8 @@ def _solve_held(
 
 
 def _check_flags(kernel: ModuleType, flags: np.ndarray) -> None:
-    """Raise if the ``bad`` bits of the solved pixels (per chunk) flag a direction."""
+    """Raise if the ``bad`` bits of the solved pixels (per chunk) flag a direction (bits of
+    ``kernel``, :mod:`photometric.hk_model_kernel`)."""
     bits = int(np.bitwise_or.reduce(flags))
     for name, non_finite, zero in (
         ("lights", kernel.BAD_LIGHT, kernel.ZERO_LIGHT),

@@ -33,7 +33,11 @@ from fingerps_recon.photometric.pipeline import (
 from fingerps_recon.surface import integration, print_kernel
 
 # Modules holding numba kernels (cache=True), counted in the report.
-KERNEL_MODULES = ("fingerps_recon.photometric.hk_kernel",
+KERNEL_MODULES = ("fingerps_recon.photometric.hk_model_kernel",
+                  "fingerps_recon.photometric.hk_gather_kernel",
+                  "fingerps_recon.photometric.hk_step_kernel",
+                  "fingerps_recon.photometric.hk_held_kernel",
+                  "fingerps_recon.photometric.hk_joint_kernel",
                   "fingerps_recon.photometric.lambertian_kernel",
                   "fingerps_recon.photometric.normal_transform_kernel",
                   "fingerps_recon.surface.back_projection_kernel",
@@ -100,9 +104,11 @@ def warm_up_kernels() -> WarmUp:
 
 
 def _cache_stats() -> tuple[int, int, tuple[str, ...]]:
-    """(versions compiled, versions loaded from the cache, modules) over the kernels."""
+    """(versions compiled, versions loaded from the cache, modules) over the kernels, each
+    counted once (a kernel module imports the helpers it calls from another)."""
     compiled = loaded = 0
     modules: list[str] = []
+    seen: set[int] = set()
     for name in KERNEL_MODULES:
         try:
             module = importlib.import_module(name)
@@ -111,7 +117,8 @@ def _cache_stats() -> tuple[int, int, tuple[str, ...]]:
         modules.append(name)
         for obj in vars(module).values():
             stats = getattr(obj, "stats", None)
-            if stats is not None and hasattr(stats, "cache_misses"):
+            if stats is not None and hasattr(stats, "cache_misses") and id(obj) not in seen:
+                seen.add(id(obj))
                 compiled += sum(stats.cache_misses.values())
                 loaded += sum(stats.cache_hits.values())
     return compiled, loaded, tuple(modules)

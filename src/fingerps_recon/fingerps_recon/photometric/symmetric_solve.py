@@ -4,8 +4,8 @@ Both per-pixel solves of the reconstruction are symmetric 3x3 systems, one per p
 Lambertian normal equations A b = r of paper Eq. 3 (A = sum_k a_k a_k^T, r = sum_k a_k I_k;
 :mod:`photometric.lambertian_kernel`), and the damped Gauss–Newton block
 (H + lambda diag(H)) delta = J^T r of the HK least squares, Eq. 6-7
-(:mod:`photometric.hk_solver`, :mod:`photometric.hk_kernel`). Each is solved in closed form,
-M^-1 = adj(M) / det(M), in two parts written here once:
+(:mod:`photometric.hk_solver`, :mod:`photometric.hk_step_kernel`). Each is solved in closed
+form, M^-1 = adj(M) / det(M), in two parts written here once:
 
 - :func:`symmetric_adjugate`: the upper triangle of adj(M) (the cofactors; adj(M) is
   symmetric too) and det(M), expanded along the first row;
