@@ -33,7 +33,14 @@ import numpy as np
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_calib.lights.led_triangulation import Placement, combine_placements
 from fingerps_calib.lights.sphere_calibration import calibrate_lights
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import (
+    MirrorSphere,
+    RigConfig,
+    Scene,
+    SensorModel,
+    SimulatedRig,
+    WhiteTarget,
+)
 from fingerps_recon.photometric.angular_error import angular_error_deg
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.pipeline import reconstruct
@@ -45,11 +52,11 @@ POSITIONS = {
     "right far (5, 2.5, 98) mm": (5.0e-3, 2.5e-3, 0.098),
     "near (-4, -2.5, 88) mm": (-4.0e-3, -2.5e-3, 0.088),
 }
-#: Sensor settings (RigConfig fields) of the noise levels.
+#: The sensor of each noise level.
 NOISE = {
-    "12 bit, low noise": {"bit_depth": 12, "full_well_e": 20000.0, "read_noise_e": 5.0},
-    "8 bit (default)": {},
-    "8 bit, 1/4 well, 4x read": {"full_well_e": 2500.0, "read_noise_e": 40.0},
+    "12 bit, low noise": SensorModel(bit_depth=12, full_well_e=20000.0, read_noise_e=5.0),
+    "8 bit (default)": SensorModel(),
+    "8 bit, 1/4 well, 4x read": SensorModel(full_well_e=2500.0, read_noise_e=40.0),
 }
 
 
@@ -70,11 +77,12 @@ def _lights(rows: list[tuple[str, str, np.ndarray, float]], apex: np.ndarray
     for n_index, (noise, sensor) in enumerate(NOISE.items()):
         placements = []
         for p_index, (where, centre) in enumerate(POSITIONS.items()):
-            rig = SimulatedRig(RigConfig(sphere_center_optical_m=centre, **sensor))
+            rig = SimulatedRig(RigConfig(sphere=MirrorSphere(center_optical_m=centre),
+                                         sensor=sensor))
             images = _sphere_images(rig, 1000 * n_index + 100 * p_index)
             t0 = time.perf_counter()
             result = calibrate_lights(images, camera_matrix=rig.camera_matrix,
-                                      radius_m=rig.config.sphere_radius_m,
+                                      radius_m=rig.config.sphere.radius_m,
                                       saturation_level=rig.max_value(),
                                       require_whole_sphere=True,
                                       expected_distance_m=(0.063, 0.117))
@@ -117,7 +125,7 @@ def _flat_field(rig: SimulatedRig) -> tuple[dict[str, float], object]:
     t0 = time.perf_counter()
     flat = flat_field_maps(white, dark=dark, saturation_level=rig.max_value())
     seconds = time.perf_counter() - t0
-    plain = SimulatedRig(RigConfig(white_target_texture=0.0))
+    plain = SimulatedRig(RigConfig(white_target=WhiteTarget(texture_amplitude=0.0)))
     before, after = [], []
     for k in range(rig.led_count):
         target = plain.noiseless(Scene.WHITE_TARGET, [k]).astype(np.float64)[2:-2, 2:-2]
@@ -165,7 +173,7 @@ def _normals(rig: SimulatedRig, flat, combined, single_ps: np.ndarray,
 def run() -> dict[str, float]:
     """Run the benchmark, print its tables, return the figures."""
     rig = SimulatedRig(RigConfig())
-    apex = np.asarray(rig.config.finger_apex_optical_m, dtype=np.float64)
+    apex = np.asarray(rig.config.finger.apex_optical_m, dtype=np.float64)
     rows: list[tuple[str, str, np.ndarray, float]] = []
     figures, combined_by_noise = _lights(rows, apex)
     n_led = rig.led_count

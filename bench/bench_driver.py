@@ -32,11 +32,11 @@ def timed_bursts(board: LedBoard, lit_leds: Callable[[], Sequence[int]], rig: Si
     (rendering the LEDs ``lit_leds()`` says are lit), after a warm-up that fills the render
     cache: each burst's duration (ms) and the seconds the ``bursts`` took back to back."""
     camera = SimulatedCamera(lambda lit: rig.render(Scene.FINGER, list(lit), rng=rng),
-                             lit_leds, width=rig.config.width, height=rig.config.height)
+                             lit_leds, width=rig.camera.width, height=rig.camera.height)
     camera.open()
     try:
         kwargs = dict(led_order=range(rig.led_count), exposures_s=0.01, levels=1.0,
-                      expected_shape=(rig.config.height, rig.config.width))
+                      expected_shape=(rig.camera.height, rig.camera.width))
         capture_burst(board, camera, burst_id=0, **kwargs)  # warm-up: fills the cache
         durations = []
         start = time.perf_counter()

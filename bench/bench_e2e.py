@@ -393,7 +393,7 @@ class Observer:
         for i, center in enumerate(SPHERE_PLACEMENTS):
             self.set_driver("sim.sphere_center", center)
             lights = self.call(self.cal_lights, CalibrateLights.Request(
-                sphere_radius=RigConfig().sphere_radius_m, add_placement=i > 0),
+                sphere_radius=RigConfig().sphere.radius_m, add_placement=i > 0),
                 timeout=60.0, what=f"light calibration, placement {i + 1}")
             if not lights.success:
                 raise BenchError(f"light calibration failed: {lights.message}")

@@ -1,6 +1,6 @@
 """Fingerprints of simulated fingers through the pipeline, judged by NIST NBIS.
 
-Captures: ``IDENTITIES`` synthetic fingers (``RigConfig.finger_identity`` 0..19) x
+Captures: ``IDENTITIES`` synthetic fingers (``FingertipShape.identity`` 0..19) x
 ``CAPTURES`` poses each, drawn per capture from a seeded generator: roll, yaw, pitch uniform
 in +-``ROLL_DEG``, +-``YAW_DEG``, +-``PITCH_DEG``, the apex shifted by up to +-``SHIFT_MM``
 in x and y (working distance unchanged). Each pose is a new ``SimulatedRig``; its burst is
@@ -81,7 +81,7 @@ from check_fingerprint_pattern import (
 from figures_report import print_figures
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
 from fingerps_driver.simulation.fingerprint_orientation import PatternClass
 from fingerps_driver.simulation.fingerprint_pattern import (
     FingerprintPattern,
@@ -147,12 +147,11 @@ def draw_pose(identity: int, capture: int) -> Pose:
 
 
 def posed_rig(identity: int, pose: Pose) -> SimulatedRig:
-    base = RigConfig()
-    x, y, z = base.finger_apex_optical_m
-    return SimulatedRig(RigConfig(
-        finger_identity=identity, finger_roll_deg=pose.roll_deg, finger_yaw_deg=pose.yaw_deg,
-        finger_pitch_deg=pose.pitch_deg,
-        finger_apex_optical_m=(x + 1e-3 * pose.shift_mm[0], y + 1e-3 * pose.shift_mm[1], z)))
+    x, y, z = FingertipShape().apex_optical_m
+    return SimulatedRig(RigConfig(finger=FingertipShape(
+        identity=identity, roll_deg=pose.roll_deg, yaw_deg=pose.yaw_deg,
+        pitch_deg=pose.pitch_deg,
+        apex_optical_m=(x + 1e-3 * pose.shift_mm[0], y + 1e-3 * pose.shift_mm[1], z))))
 
 
 def calibrations() -> dict[Model, PreparedCalibration]:

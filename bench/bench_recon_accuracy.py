@@ -63,7 +63,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage
 
-from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import (
+    Reflectance,
+    RigConfig,
+    Scene,
+    SimulatedRig,
+    SkinReflectance,
+)
 from fingerps_recon.errors import FingerpsReconError
 from fingerps_recon.photometric.angular_error import angular_error_deg
 from fingerps_recon.photometric.frames import optical_to_ps
@@ -109,7 +115,7 @@ def _noise_tag(noise: float) -> str:
 def _pixel_rays(rig: SimulatedRig) -> np.ndarray:
     """(H, W, 3) rays (u - cx, v - cy, f) / f in the optical frame, z = 1."""
     k = rig.camera_matrix
-    h, w = rig.config.height, rig.config.width
+    h, w = rig.camera.height, rig.camera.width
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     return np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], axis=-1)
 
@@ -118,7 +124,7 @@ def _light_settings(rig: SimulatedRig, white: np.ndarray) -> dict[str, Lights]:
     """The three calibrated light settings of the module docstring."""
     rays = _pixel_rays(rig)
     distant = rig.light_directions_ps()
-    plane = rig.config.finger_apex_optical_m[2] * rays  # surface assumed on z = 0.09 m
+    plane = rig.config.finger.apex_optical_m[2] * rays  # surface assumed on z = 0.09 m
     near = rig.led_positions_optical[:, None, None, :] - plane[None]
     near = optical_to_ps(near / np.linalg.norm(near, axis=-1, keepdims=True))
     return {
@@ -139,7 +145,7 @@ def _oracle(rig: SimulatedRig) -> Lights:
     for led in range(k):
         directions[led][inside] = optical_to_ps(rig.leds.directions_optical(points[inside], led))
         irradiance[led][inside] = rig.leds.irradiance(points[inside], led)
-    return Lights(directions, (irradiance * rig.config.exposure_gain).astype(np.float32), None)
+    return Lights(directions, (irradiance * rig.sensor.exposure_gain).astype(np.float32), None)
 
 
 def _lambertian(images: np.ndarray, lights: Lights, mask: np.ndarray,
@@ -264,12 +270,12 @@ def run(verbose: bool = False) -> dict[str, float]:
                     f"recon.mae_deg.{solver}.{tag}"]
 
     for scene, reflectance in SCENES.items():
-        rig = SimulatedRig(RigConfig(reflectance=reflectance))
+        rig = SimulatedRig(RigConfig(skin=SkinReflectance(model=reflectance)))
         clean = np.stack([rig.noiseless(Scene.FINGER, [k]) for k in range(rig.led_count)])
         white = np.stack([rig.noiseless(Scene.WHITE_TARGET, [k]) for k in range(rig.led_count)])
         truth = rig.finger_truth()
         evaluate = scipy.ndimage.binary_erosion(truth.mask, iterations=BORDER_PX)
-        working = float(rig.config.finger_apex_optical_m[2])
+        working = float(rig.config.finger.apex_optical_m[2])
         geometry = (working / float(rig.camera_matrix[0, 0]), working)
         rays = _pixel_rays(rig)
         views = optical_to_ps(-rays / np.linalg.norm(rays, axis=-1, keepdims=True))

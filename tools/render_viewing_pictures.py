@@ -4,14 +4,14 @@ Neither Foxglove nor RViz runs on the build machine (no GPU, no package source f
 these are not screenshots. They are renderings of the topics the configs name, laid out as
 the configs arrange them:
 
-- the data: one burst of the simulated rig (``RigConfig(finger_identity=IDENTITY)``, a
-  synthetic fingerprint), calibrated with the rig's true LED positions and its white-target
-  flat field (as ``bench/bench_fingerprint.py`` does), reconstructed with recon_node's
-  defaults (HK, ridge enhancement w 7, k 2.5), the print made by ``rolled_print`` as
-  recon_node does with ``fingerprint:=true``. What each topic would carry: ``normal_map``
-  (its PNG companion is lossless, so the same pixels), ``fingerprint``, ``depth``,
-  ``points`` (x y z, intensity = albedo), ``image_raw`` (the burst's last LED, the image a
-  viewer shows last);
+- the data: one burst of the simulated rig (a synthetic fingerprint:
+  ``RigConfig(finger=FingertipShape(identity=IDENTITY))``), calibrated with the rig's true
+  LED positions and its white-target flat field (as ``bench/bench_fingerprint.py`` does),
+  reconstructed with recon_node's defaults (HK, ridge enhancement w 7, k 2.5), the print
+  made by ``rolled_print`` as recon_node does with ``fingerprint:=true``. What each topic
+  would carry: ``normal_map`` (its PNG companion is lossless, so the same pixels),
+  ``fingerprint``, ``depth``, ``points`` (x y z, intensity = albedo), ``image_raw`` (the
+  burst's last LED, the image a viewer shows last);
 - the layout: src/fingerps_recon/config/foxglove_layout.json's ``layout`` tree (split
   directions and percentages) and panel configs; fingerps.rviz's displays (image panes in
   the left dock, where RViz puts them when no window state is saved; the Displays and Views
@@ -45,7 +45,7 @@ import yaml
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.board.board_emulator import FIRMWARE
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import (
     Model,
@@ -90,7 +90,7 @@ class Capture:
 
 def capture() -> Capture:
     """One burst of the simulated rig through recon_node's pipeline and the print."""
-    rig = SimulatedRig(RigConfig(finger_identity=IDENTITY))
+    rig = SimulatedRig(RigConfig(finger=FingertipShape(identity=IDENTITY)))
     leds = range(rig.led_count)
     white = np.stack([rig.render(Scene.WHITE_TARGET, [k], rng=np.random.default_rng(SEED + k))
                       for k in leds])

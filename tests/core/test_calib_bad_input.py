@@ -16,7 +16,7 @@ from fingerps_calib.errors import FingerpsCalibError
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_calib.lights.sphere_calibration import calibrate_lights
 from fingerps_calib.lights.sphere_silhouette import RADIUS_RANGE_M
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import MirrorSphere, RigConfig, Scene, SensorModel, SimulatedRig
 
 RADIUS = 4e-3
 #: What calib_node asks for: the whole sphere, 63-117 mm away (90 mm +- 30 %).
@@ -65,7 +65,7 @@ def test_another_object_is_not_taken_for_the_sphere(rig):
 
 
 def test_sphere_cut_by_the_frame():
-    cut = SimulatedRig(RigConfig(sphere_center_optical_m=(-9.0e-3, 0.0, 0.094)))
+    cut = SimulatedRig(RigConfig(sphere=MirrorSphere(center_optical_m=(-9.0e-3, 0.0, 0.094))))
     result = _calibrate(cut, _render(cut, Scene.SPHERE))
     assert not result.ok
     assert any("cut by the image border (left)" in p and "middle of the view" in p
@@ -77,7 +77,7 @@ def test_sphere_cut_by_the_frame():
 
 
 def test_a_missing_highlight_is_named(rig, sphere):
-    matte = SimulatedRig(RigConfig(sphere_specular_reflectance=0.0))
+    matte = SimulatedRig(RigConfig(sphere=MirrorSphere(specular_reflectance=0.0)))
     images = sphere.copy()
     images[3] = matte.render(Scene.SPHERE, [3], rng=np.random.default_rng(3))
     result = _calibrate(rig, images)
@@ -93,7 +93,8 @@ def test_a_missing_highlight_is_named(rig, sphere):
 
 
 def test_highlights_saturated_into_blobs():
-    blurred = SimulatedRig(RigConfig(psf_sigma_px=6.0, exposure_gain=4.0))
+    blurred = SimulatedRig(RigConfig(sphere=MirrorSphere(psf_sigma_px=6.0),
+                                     sensor=SensorModel(exposure_gain=4.0)))
     result = _calibrate(blurred, _render(blurred, Scene.SPHERE))
     assert not result.ok
     assert all("saturated into a blob" in p and "lower the exposure" in p
@@ -102,7 +103,7 @@ def test_highlights_saturated_into_blobs():
 
 
 def test_a_saturated_sphere(rig, sphere):
-    hot = SimulatedRig(RigConfig(exposure_gain=40.0))
+    hot = SimulatedRig(RigConfig(sensor=SensorModel(exposure_gain=40.0)))
     result = _calibrate(hot, _render(hot, Scene.SPHERE))
     assert not result.ok
     assert any("whole sphere is saturated" in p for p in result.problems), result.problems

@@ -42,7 +42,7 @@ def _folder(path: Path, images: np.ndarray, *, names: list[str] | None = None) -
 
 def _camera_info(path: Path, rig: SimulatedRig, *, width: int | None = None) -> Path:
     save_camera_info(path, CameraIntrinsics(
-        width=width or rig.config.width, height=rig.config.height,
+        width=width or rig.camera.width, height=rig.camera.height,
         camera_matrix=rig.camera_matrix, distortion_model="plumb_bob",
         distortion=np.zeros(5), camera_name="fingerps_sim"))
     return path
@@ -69,7 +69,7 @@ def test_perspective_folder_gives_diligent_light_directions(rig, sphere_images, 
     report = yaml.safe_load((folder / "light_calibration_report.yaml").read_text())
     assert report["ok"] is True and report["problems"] == []
     assert report["method"].startswith("perspective")
-    np.testing.assert_allclose(report["sphere_center_m"], rig.config.sphere_center_optical_m,
+    np.testing.assert_allclose(report["sphere_center_m"], rig.config.sphere.center_optical_m,
                                atol=0.2e-3)
     assert report["edge_rms_px"] < 0.3
     assert [led["file"] for led in report["leds"]] == [f"sphere_{k:02d}.png" for k in range(7)]

@@ -179,15 +179,16 @@ def test_two_simulated_placements_give_the_leds_and_the_apex_directions():
     errors, positions = [], []
     placements = []
     for index, centre in enumerate([(2.0e-3, -1.5e-3, 0.094), (-5.5e-3, 2.0e-3, 0.094)]):
-        rig = simulation.SimulatedRig(simulation.RigConfig(sphere_center_optical_m=centre))
+        sphere = simulation.MirrorSphere(center_optical_m=centre)
+        rig = simulation.SimulatedRig(simulation.RigConfig(sphere=sphere))
         images = np.stack([
             rig.render(simulation.Scene.SPHERE, [k], rng=np.random.default_rng(10 * index + k))
             for k in range(rig.led_count)])
         result = calibrate_lights(images, camera_matrix=rig.camera_matrix,
-                                  radius_m=rig.config.sphere_radius_m)
+                                  radius_m=rig.config.sphere.radius_m)
         assert result.ok, result.problems
         placements.append(Placement.from_result(result))
-    apex = np.asarray(rig.config.finger_apex_optical_m)
+    apex = np.asarray(rig.config.finger.apex_optical_m)
     combined = combine_placements(placements, reference_point_optical_m=apex)
     assert combined.ok, combined.problems
     errors = _angle_deg(combined.directions_optical, rig.led_positions_optical - apex)

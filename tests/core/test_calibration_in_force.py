@@ -56,7 +56,7 @@ def test_a_refused_calibration_keeps_the_one_in_force_and_its_reason(rig: Simula
 def test_a_flat_field_is_used_only_where_it_fits(rig: SimulatedRig) -> None:
     held = CalibrationInForce()
     held.offer_lights(lights(rig))
-    h, w = rig.config.height, rig.config.width
+    h, w = rig.camera.height, rig.camera.width
     maps = held.offer_flat(flat(np.full((7, h, w), 0.5, np.float32)), BurstLimits())
     assert held.flat_for((7, h, w)) is maps
     for other in ((7, h, w + 1), (6, h, w), (8, h, w)):

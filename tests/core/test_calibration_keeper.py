@@ -84,7 +84,7 @@ def white(rig) -> np.ndarray:
 def _info(rig: SimulatedRig, *, k: np.ndarray | None = None) -> DriverCameraInfo:
     return DriverCameraInfo(
         k=np.asarray(rig.camera_matrix, float).ravel() if k is None else k, d=np.zeros(5),
-        distortion_model="plumb_bob", width=rig.config.width, height=rig.config.height,
+        distortion_model="plumb_bob", width=rig.camera.width, height=rig.camera.height,
         frame_id="fingerps_camera_optical_frame")
 
 
@@ -145,7 +145,7 @@ def test_without_intrinsics_the_lights_are_refused_with_the_fix(tmp_path, rig, s
 
 def test_images_of_another_size_than_the_intrinsics_are_refused(tmp_path, rig, sphere):
     file_camera = CameraIntrinsics(
-        width=rig.config.width, height=rig.config.height, camera_matrix=rig.camera_matrix,
+        width=rig.camera.width, height=rig.camera.height, camera_matrix=rig.camera_matrix,
         distortion_model="plumb_bob", distortion=np.zeros(5), camera_name="cam")
     k = _Keeper(tmp_path, file_camera=file_camera)
     answer = k.keeper.calibrate_lights(_shots(sphere[:, :400, :600], None),
@@ -154,7 +154,7 @@ def test_images_of_another_size_than_the_intrinsics_are_refused(tmp_path, rig, s
     assert not answer.success
     assert answer.message.startswith(
         f"the images are 600x400 but the intrinsics (camera_info_file (cam)) are for "
-        f"{rig.config.width}x{rig.config.height}")
+        f"{rig.camera.width}x{rig.camera.height}")
     tiny = k.keeper.calibrate_lights(_shots(sphere[:, :32, :32], None), sphere_radius_m=0.004,
                                      add_placement=False, settings=SETTINGS)
     assert tiny.message.startswith("frames are 32x32 px; a calibration needs whole camera "
@@ -229,11 +229,11 @@ def test_white_target_frames_of_another_size_are_refused(rig, white):
     assert not answer.success
     assert answer.message.startswith(
         f"the white-target frames are 64x64, the camera's images (the driver's camera_info) "
-        f"{rig.config.width}x{rig.config.height}")
+        f"{rig.camera.width}x{rig.camera.height}")
     dark = k.keeper.calibrate_flat_field(_shots(white, None, dark=np.zeros((64, 64))),
                                          settings=SETTINGS)
     assert dark.message.startswith(
-        f"the dark frame is 64x64, the images {rig.config.width}x{rig.config.height}")
+        f"the dark frame is 64x64, the images {rig.camera.width}x{rig.camera.height}")
 
 
 def test_the_saved_calibration_is_loaded_for_the_same_camera_only(tmp_path, rig, sphere,

@@ -25,7 +25,7 @@ from fingerps_driver.cameras.camera_setup import (
     open_calibration,
 )
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import PinholeCamera, RigConfig, Scene, SimulatedRig
 
 W, H = 96, 72
 NODE, TOPIC = "/fingerps/driver", "/fingerps/image_raw"
@@ -43,7 +43,7 @@ def test_the_sim_camera_renders_the_rig_of_its_settings():
     camera, renderer = make_camera(_sim(sim=SimSettings(bit_depth=12)), _lit, emulated=True)
     assert isinstance(camera, SimulatedCamera) and isinstance(renderer, RigRenderer)
     assert (camera.width, camera.height, camera.encoding) == (W, H, "mono16")
-    assert renderer.rig.config.bit_depth == 12 and renderer.scene is Scene.FINGER
+    assert renderer.rig.config.sensor.bit_depth == 12 and renderer.scene is Scene.FINGER
     with camera:
         assert camera.grab(timeout_s=0.1).shape == (H, W)
 
@@ -76,7 +76,7 @@ def test_settings_that_do_not_fit_are_one_line(settings, emulated, message):
 
 
 def _renderer(motion_px=(4.0, -2.0), motion_bursts=0) -> RigRenderer:
-    rig = SimulatedRig(RigConfig(width=W, height=H))
+    rig = SimulatedRig(RigConfig(camera=PinholeCamera(width=W, height=H)))
     return RigRenderer(rig, SimSettings(seed=3, motion_px=motion_px,
                                         motion_bursts=motion_bursts))
 
@@ -112,11 +112,12 @@ def test_motion_limited_to_some_bursts_counts_from_its_setting():
 def test_the_sphere_and_the_finger_are_rebuilt_from_the_rig_in_use():
     renderer = _renderer()
     moved = renderer.moved_sphere([0.0, 0.0, 0.1])
-    assert moved.config.sphere_center_optical_m == (0.0, 0.0, 0.1)
-    assert moved.config.width == W
-    posed = renderer.posed_finger({"finger_roll_deg": 10.0, "finger_identity": 2})
-    assert posed.config.finger_roll_deg == 10.0 and posed.config.finger_identity == 2
-    assert renderer.rig.config.finger_roll_deg == 0.0  # the caller swaps it in
+    assert moved.config.sphere.center_optical_m == (0.0, 0.0, 0.1)
+    assert moved.camera.width == W
+    posed = renderer.posed_finger({"roll_deg": 10.0, "identity": 2})
+    assert posed.config.finger.roll_deg == 10.0 and posed.config.finger.identity == 2
+    assert posed.camera.width == W
+    assert renderer.rig.config.finger.roll_deg == 0.0  # the caller swaps it in
 
 
 def _camera_and_rig():

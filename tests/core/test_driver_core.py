@@ -186,10 +186,10 @@ def test_the_simulated_rig_follows_its_settings(sim):
     core.show(Scene.SPHERE)
     assert core.renderer.scene is Scene.SPHERE
     core.move_sphere([0.001, 0.0, 0.09])
-    assert core.renderer.rig.config.sphere_center_optical_m == (0.001, 0.0, 0.09)
-    core.pose_finger({"finger_roll_deg": 5.0})
-    assert core.renderer.rig.config.finger_roll_deg == 5.0
-    assert said(sim.log, "info", "sim finger: {'finger_roll_deg': 5.0}")
+    assert core.renderer.rig.config.sphere.center_optical_m == (0.001, 0.0, 0.09)
+    core.pose_finger({"roll_deg": 5.0})
+    assert core.renderer.rig.config.finger.roll_deg == 5.0
+    assert said(sim.log, "info", "sim finger: {'roll_deg': 5.0}")
     core.set_sim_motion([1.0, 0.0], 0)
     assert core.capture(PLAN, with_dark=False).ok
 

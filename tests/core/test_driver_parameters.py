@@ -45,7 +45,7 @@ def test_every_parameter_once_in_declaration_order():
 def test_defaults_follow_the_parameters_declared_before():
     assert _declared()["led_order"] == list(range(7))
     assert _declared(led_count=4)["led_order"] == [0, 1, 2, 3]
-    assert _declared()["sim.sphere_center"] == list(RigConfig().sphere_center_optical_m)
+    assert _declared()["sim.sphere_center"] == list(RigConfig().sphere.center_optical_m)
 
 
 def test_descriptors_carry_ranges_and_flags():
@@ -124,8 +124,8 @@ def test_settings_read_what_is_set():
     assert (camera.backend, camera.device, camera.exposure_s) == (CameraBackend.V4L2, "2",
                                                                   0.004)
     finger = camera.sim.finger
-    x, y, z = RigConfig().finger_apex_optical_m
-    assert finger["finger_identity"] == 4
-    assert finger["finger_apex_optical_m"] == pytest.approx((x + 0.001, y - 0.002, z))
+    x, y, z = RigConfig().finger.apex_optical_m
+    assert finger["identity"] == 4
+    assert finger["apex_optical_m"] == pytest.approx((x + 0.001, y - 0.002, z))
     plan = table.burst_plan(values.__getitem__)
     assert plan.led_order == (3, 1) and plan.exposures_s == (0.004, 0.002)

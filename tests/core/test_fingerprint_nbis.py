@@ -19,7 +19,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
 from fingerps_recon.photometric.pipeline import (
     Model,
     ReconstructionOptions,
@@ -72,16 +72,16 @@ def captures():
     base = SimulatedRig()
     prepared = prepare_calibration(
         base.light_directions_ps(), camera_matrix=base.camera_matrix,
-        shape=(base.config.height, base.config.width), intensities=base.light_intensities(),
+        shape=(base.camera.height, base.camera.width), intensities=base.light_intensities(),
         led_positions_optical=base.led_positions_optical, options=options)
-    x, y, z = base.config.finger_apex_optical_m
+    x, y, z = base.config.finger.apex_optical_m
     out = {}
     for identity in IDENTITIES:
         templates, recalls, mirrored = [], [], None
         for n, ((roll, yaw, pitch), (dx, dy)) in enumerate(POSES):
-            rig = SimulatedRig(RigConfig(
-                finger_identity=identity, finger_roll_deg=roll, finger_yaw_deg=yaw,
-                finger_pitch_deg=pitch, finger_apex_optical_m=(x + dx * 1e-3, y + dy * 1e-3, z)))
+            rig = SimulatedRig(RigConfig(finger=FingertipShape(
+                identity=identity, roll_deg=roll, yaw_deg=yaw, pitch_deg=pitch,
+                apex_optical_m=(x + dx * 1e-3, y + dy * 1e-3, z))))
             images = rig.render_burst(Scene.FINGER, seed=[identity, n])
             recon = reconstruct_prepared(images, prepared, full_scale=rig.max_value(),
                                          options=options)

@@ -2,40 +2,41 @@
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from scipy import ndimage
 
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.simulation import RigConfig, SimulatedRig
-from fingerps_driver.simulation.fingertip import trace_fingertip
-from fingerps_recon.photometric.frames import ps_to_optical
+from fingerps_driver.simulation import FingertipShape, PinholeCamera, RigConfig, SimulatedRig
+from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
 
 IDENTITY = 3
 
-# Normals of the default rig (the analytic spiral, no fingerprint, no pose) at these pixels:
-# the fingerprint and pose options must leave it as it renders them; (0, 0, 0) is off the
-# finger.
-_PIXELS = [(300, 330), (60, 330), (200, 140), (200, 520), (470, 300), (330, 250), (120, 400)]
-_NORMALS_BEFORE = [
-    (0.16310403429679438, 0.16514333406338008, 0.9726894433530884),
-    (0.0, 0.0, 0.0),
-    (-0.8007457907006233, 0.4132572289716412, 0.43361808239269034),
-    (0.7522730327199848, 0.37820061381692555, 0.5394901110778375),
-    (-0.15040443112898635, -0.3278765367332411, 0.9326711552077621),
-    (-0.24217591855416024, 0.021902777085193063, 0.9699850992816359),
-    (0.31029608943402925, 0.6818174784518366, 0.6624509513613278),
-]
+# The reference normals: five-point central differences of _spiral_height over 0.5 um
+# (truncation and round-off both ~2e-9 rad: halving the step changes them by that much).
+_REFERENCE_STEP_M = 0.5e-6
+# Points nearer than this to a crease of the surface are left out: both stencils span less.
+_SEAM_M = 3e-6
+# The rig's normals are central differences over +-0.25 um (``fingertip``), exact to
+# O(step^2): 1.6e-5 rad at the most where the ridges are steepest in the image (it shrinks
+# fourfold with half the step), elsewhere far less. A change of the surface is far above
+# this bound: 0.01 % more ridge period, finger radius or tip elongation moves some normals by
+# more than 1e-3 rad.
+_NORMALS_TOLERANCE = 3e-5
 
 
-def _coarse(**kwargs) -> RigConfig:
+def _coarse(**finger) -> RigConfig:
     """The standard field of view at a quarter of the resolution (120 um pixels): cheap."""
-    return RigConfig(width=165, height=124, focal_px=750.0, **kwargs)
+    return RigConfig(camera=PinholeCamera(width=165, height=124, fx=750.0, fy=750.0),
+                     finger=FingertipShape(**finger))
 
 
 @pytest.fixture(scope="module")
 def rig() -> SimulatedRig:
-    return SimulatedRig(RigConfig(finger_identity=IDENTITY))
+    return SimulatedRig(RigConfig(finger=FingertipShape(identity=IDENTITY)))
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +47,9 @@ def truth(rig):
 def _path_on_the_shaft(rig: SimulatedRig, a: np.ndarray, b: np.ndarray) -> float:
     """Length (m) of a short path on the shaft's base surface between the points of it
     behind pixel points a and b (3,): straight in (azimuth about the bent axis, dY)."""
-    c = rig.config
-    xa, ya, _ = c.finger_apex_optical_m
-    big_r, big_l = c.finger_radius_m, c.finger_length_radius_m
+    finger = rig.fingertip
+    xa, ya, _ = finger.apex_optical_m
+    big_r, big_l = finger.radius_m, finger.length_radius_m
     t = np.linspace(0.0, 1.0, 2001)[:, None]
     ends = np.array([[np.arcsin((p[0] - xa) / big_r), p[1] - ya] for p in (a, b)])
     theta, dy = (ends[0] + t * (ends[1] - ends[0])).T
@@ -57,29 +58,85 @@ def _path_on_the_shaft(rig: SimulatedRig, a: np.ndarray, b: np.ndarray) -> float
     return float(np.linalg.norm(np.diff(path, axis=0), axis=-1).sum())
 
 
-# How far another machine's float64 arithmetic may move these normals (libm or SIMD sin, cos,
-# arcsin, sqrt differ by a few ulps; AVX-512 numpy uses other kernels than AVX2):
-# - the normal is a central difference of h over 2 * _FD_STEP_M (0.5 um): an error of one
-#   ulp of h's 8 mm-sized terms (1.7e-18 m) moves a gradient component by 3.5e-12 (measured
-#   6e-12 with h perturbed by +-1 ulp); allowing 32 ulps through h's ~30 operations: 2e-10;
-# - a stop of the secant search flipped by rounding (|f| against 1e-12 m) leaves one step
-#   more or less: measured <= 8.6e-11 (tolerance 1e-13 instead);
-# so 5e-10 on the unit normal's components (a bound, not an estimate: on an AVX-512 machine,
-# AVX-512 off with tools/no_avx512_env.sh moves them by 6.4e-15). A change of the geometry is
-# far above it: 1 ppm more finger radius, tip elongation, ridge height or period moves them
-# by 1.5e-7 .. 3e-5.
-_NORMALS_ATOL = 5e-10
+def _spiral_height(finger: FingertipShape, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """Z - Za (m) of the unposed finger carrying the whorl, at offsets (dx, dy) from its apex
+    inside its silhouette, as ``fingertip``'s module docstring defines the surface.
+
+    Ahead of the apex (dy < 0) an ellipsoid of revolution about the finger's axis, its
+    semi-axis e R along it; behind it a cylinder of radius R bent along its length with
+    radius L. The whorl's phase lives on the arc lengths from the apex over the cap and
+    around the cylinder (U, V), warped by sines of wavelength 9 mm (in V) and 13 mm (in U)
+    whose phases are the finger seed's first two uniform draws in [0, 2 pi); a spiral of
+    ellipses about the core, faded out over 0.7 periods of it; its relief is displaced along
+    the base surface's normal.
+    """
+    big_r, big_l, e = finger.radius_m, finger.length_radius_m, finger.tip_elongation
+    ahead = dy < 0.0
+    meridian = np.where(ahead, dy / e, 0.0)  # the cap scaled to a sphere along the finger
+    off_axis = np.sqrt(dx**2 + meridian**2)
+    below = np.sqrt(big_r**2 - off_axis**2)  # R cos(polar angle)
+    gradient_x = dx / below
+    gradient_y = np.where(ahead, meridian / (e * below), dy / big_l)
+    base = big_r - below + np.where(ahead, 0.0, 0.5 * dy**2 / big_l)
+    polar = np.arcsin(off_axis / big_r)  # the angle at the sphere's centre from the apex
+    arc_ratio = np.divide(big_r * polar, off_axis, out=np.ones_like(dx), where=off_axis > 0)
+    along_u = dx * arc_ratio
+    along_v = np.where(ahead, dy * arc_ratio, dy)
+    first, second = np.random.default_rng(finger.seed).uniform(0.0, 2.0 * np.pi, size=2)
+    warp = finger.warp_amplitude_m
+    across = along_u - finger.core_offset_m[0] + warp * np.sin(2 * np.pi * along_v / 9e-3 + first)
+    along = along_v - finger.core_offset_m[1] + warp * np.sin(2 * np.pi * along_u / 13e-3 + second)
+    q = finger.ridge_ellipticity
+    ellipse = np.sqrt(q * across**2 + along**2 / q)
+    turns = ellipse / finger.ridge_period_m + np.arctan2(along, across) / (2 * np.pi)
+    fade = 1.0 - np.exp(-((ellipse / (0.7 * finger.ridge_period_m)) ** 2))
+    relief = 0.5 * finger.ridge_height_m * np.cos(2 * np.pi * turns) * fade
+    return base - relief * np.sqrt(1.0 + gradient_x**2 + gradient_y**2)
 
 
-def test_the_spiral_finger_is_unchanged():
+def _fourth_order_slopes(height: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                         dx: np.ndarray, dy: np.ndarray,
+                         step: float) -> tuple[np.ndarray, np.ndarray]:
+    """dh/dx and dh/dy by the five-point central difference (error O(step^4))."""
+    def slope(shift_x: float, shift_y: float) -> np.ndarray:
+        near = height(dx + shift_x, dy + shift_y) - height(dx - shift_x, dy - shift_y)
+        far = height(dx + 2 * shift_x, dy + 2 * shift_y) - height(dx - 2 * shift_x,
+                                                                   dy - 2 * shift_y)
+        return (8.0 * near - far) / (12.0 * step)
+    return slope(step, 0.0), slope(0.0, step)
+
+
+def test_the_spiral_finger_has_the_normals_of_its_height_field() -> None:
+    """The rendered spiral finger's points lie on their pixels' rays and on the surface
+    written out in ``_spiral_height``, and carry that surface's normals."""
     rig = SimulatedRig(RigConfig())
-    rays = rig.camera.pixel_rays()
-    surface = trace_fingertip(rig.fingertip, np.stack([rays[r, c] for r, c in _PIXELS])[None])
-    np.testing.assert_allclose(surface.normals_ps[0], np.array(_NORMALS_BEFORE), rtol=0,
-                               atol=_NORMALS_ATOL)
-    assert np.all(surface.normals_ps[0][1] == 0.0)  # off the finger: zeros by construction
-    assert rig.fingerprint is None and rig.finger_truth().rolled_mm is None
-    with pytest.raises(FingerpsDriverError, match="finger_identity"):
+    finger = rig.fingertip
+    assert finger.spiral and finger.identity is None and finger.roll_deg == 0.0
+    xa, ya, za = finger.apex_optical_m
+    truth = rig.finger_truth()
+    mask = truth.mask
+    assert 0.2 < mask.mean() < 0.8
+    assert np.all(truth.normals_ps[~mask] == 0.0)  # off the finger: zeros
+    points = rig.finger_points_optical()[mask]
+    np.testing.assert_allclose(points / points[:, 2:], rig.camera.pixel_rays()[mask], rtol=0,
+                               atol=1e-12)
+    dx, dy = points[:, 0] - xa, points[:, 1] - ya
+    height = functools.partial(_spiral_height, finger)
+    np.testing.assert_allclose(za + height(dx, dy), points[:, 2], rtol=0, atol=1e-9)
+    # the surface is smooth away from the cap's seam with the shaft (the whorl's V bends
+    # there) and from the silhouette (the cone continuation starts there)
+    rim = finger.radius_m * np.sin(np.deg2rad(finger.max_slope_deg))
+    off_axis = np.hypot(dx, np.where(dy < 0.0, dy / finger.tip_elongation, 0.0))
+    smooth = (np.abs(dy) > _SEAM_M) & (off_axis < rim - _SEAM_M)
+    assert smooth.mean() > 0.99
+    gx, gy = _fourth_order_slopes(height, dx[smooth], dy[smooth], _REFERENCE_STEP_M)
+    normals = np.stack([gx, gy, -np.ones_like(gx)], axis=-1)
+    normals = optical_to_ps(normals / np.linalg.norm(normals, axis=-1, keepdims=True))
+    error = np.linalg.norm(truth.normals_ps[mask][smooth] - normals, axis=-1)
+    print(f"\nnormals: largest error {error.max():.2e} rad at {smooth.sum()} points")
+    assert error.max() < _NORMALS_TOLERANCE, error.max()
+    assert rig.fingerprint is None and truth.rolled_mm is None
+    with pytest.raises(FingerpsDriverError, match=r"finger\.identity"):
         rig.rolled_print()
 
 
@@ -113,7 +170,7 @@ def test_the_rolled_print_and_its_minutiae_are_exposed(rig, truth):
     assert rolled.shape == (*truth.mask.shape, 2) and rolled.dtype == np.float32
     assert np.isnan(rolled[~truth.mask]).all() and np.isfinite(rolled[truth.mask]).all()
     # the apex lies where the relief puts it in the rolled plane
-    apex = rig.rolled_position_mm(np.asarray(rig.config.finger_apex_optical_m))
+    apex = rig.rolled_position_mm(np.asarray(rig.config.finger.apex_optical_m))
     np.testing.assert_allclose(apex, rig.fingertip.relief.apex_mm, atol=1e-9)
     # the finger covers most of the print (and stays inside the grid at this pose)
     inside = rolled[truth.mask]
@@ -125,7 +182,7 @@ def test_the_camera_sees_the_print_mirrored(rig, truth):
     rolled x falls as the image x rises (finger pointing up the image), and the rolled y
     rises down the image's centre column, unmirrored."""
     rolled = truth.rolled_mm.astype(np.float64)
-    apex = rig.camera.project(np.asarray(rig.config.finger_apex_optical_m)[None])[0]
+    apex = rig.camera.project(np.asarray(rig.config.finger.apex_optical_m)[None])[0]
     row, col = round(float(apex[1])), round(float(apex[0]))
     cols = np.flatnonzero(truth.mask[row])
     rows = np.flatnonzero(truth.mask[:, col])
@@ -139,7 +196,7 @@ def test_points_5_mm_apart_in_the_rolled_plane_are_5_mm_apart_on_the_skin(rig, t
     distance along the (bent) shaft surface is the same within 1 % (the bent shaft is not
     developable: its coordinate lines meet at up to ~10 deg from square at the margins)."""
     points = rig.finger_points_optical()
-    dy = points[..., 1] - rig.config.finger_apex_optical_m[1]
+    dy = points[..., 1] - rig.config.finger.apex_optical_m[1]
     shaft = truth.mask & (dy > 1.0e-3)
     rolled = truth.rolled_mm.astype(np.float64)
     errors = []
@@ -161,7 +218,7 @@ def test_points_5_mm_apart_in_the_rolled_plane_are_5_mm_apart_on_the_skin(rig, t
 
 def test_meridian_arc_lengths_on_the_cap_are_exact():
     """Skin y along the cap's centre line is the arc length of the ellipsoid's meridian."""
-    shape = SimulatedRig(_coarse(finger_identity=IDENTITY)).fingertip
+    shape = SimulatedRig(_coarse(identity=IDENTITY)).fingertip
     big_r, e = shape.radius_m, shape.tip_elongation
     beta = np.linspace(0.0, np.deg2rad(65.0), 20001)
     dy, z = -e * big_r * np.sin(beta), big_r * (1 - np.cos(beta))
@@ -171,14 +228,14 @@ def test_meridian_arc_lengths_on_the_cap_are_exact():
 
 
 def test_roll_shifts_the_rolled_coordinates_by_r_times_the_angle():
-    still = SimulatedRig(_coarse(finger_identity=IDENTITY))
-    rolled = SimulatedRig(_coarse(finger_identity=IDENTITY, finger_roll_deg=10.0))
+    still = SimulatedRig(_coarse(identity=IDENTITY))
+    rolled = SimulatedRig(_coarse(identity=IDENTITY, roll_deg=10.0))
     a, b = still.finger_truth(), rolled.finger_truth()
     assert np.mean(a.mask != b.mask) < 1e-3  # the shape is symmetric about its axis
     points = still.finger_points_optical()[a.mask]
     shift = rolled.rolled_position_mm(points) - still.rolled_position_mm(points)
-    expected = 1e3 * still.config.finger_radius_m * np.deg2rad(10.0)  # rolled x is mirrored
-    shaft = points[:, 1] > still.config.finger_apex_optical_m[1]
+    expected = 1e3 * still.config.finger.radius_m * np.deg2rad(10.0)  # rolled x is mirrored
+    shaft = points[:, 1] > still.config.finger.apex_optical_m[1]
     np.testing.assert_allclose(shift[shaft, 0], expected, atol=1e-9)
     np.testing.assert_allclose(shift[:, 1], 0.0, atol=1e-9)
     # on the cap the shift is rho(dY) * angle, rho the cross-section's radius: smaller
@@ -186,18 +243,18 @@ def test_roll_shifts_the_rolled_coordinates_by_r_times_the_angle():
     # the truth says the same pixel by pixel, within the ridges' lateral effect on the hits
     both = a.mask & b.mask
     pixel_shaft = both & (still.finger_points_optical()[..., 1]
-                          > still.config.finger_apex_optical_m[1] + 0.5e-3)
+                          > still.config.finger.apex_optical_m[1] + 0.5e-3)
     np.testing.assert_allclose(
         b.rolled_mm[pixel_shaft, 0] - a.rolled_mm[pixel_shaft, 0], expected, atol=0.05)
     assert not np.array_equal(a.normals_ps[both], b.normals_ps[both])
 
 
 def test_yaw_turns_the_finger_about_the_optical_axis():
-    still = SimulatedRig(_coarse(finger_identity=IDENTITY))
-    turned = SimulatedRig(_coarse(finger_identity=IDENTITY, finger_yaw_deg=20.0))
+    still = SimulatedRig(_coarse(identity=IDENTITY))
+    turned = SimulatedRig(_coarse(identity=IDENTITY, yaw_deg=20.0))
     a = still.finger_truth()
     points = still.finger_points_optical()[a.mask]
-    xa, ya, za = still.config.finger_apex_optical_m
+    xa, ya, za = still.config.finger.apex_optical_m
     c, s = np.cos(np.deg2rad(20.0)), np.sin(np.deg2rad(20.0))
     dx, dy = points[:, 0] - xa, points[:, 1] - ya
     moved = np.stack([xa + c * dx - s * dy, ya + s * dx + c * dy, points[:, 2]], axis=-1)
@@ -212,8 +269,8 @@ def test_yaw_turns_the_finger_about_the_optical_axis():
 def test_pitch_turns_the_finger_about_the_optical_x_axis(pitch):
     """A pitched finger's hits, turned back about the apex, lie on the level finger's height
     field, with its normals there, on their pixels' rays; the rolled mapping goes along."""
-    level = SimulatedRig(_coarse(finger_identity=IDENTITY))
-    pitched = SimulatedRig(_coarse(finger_identity=IDENTITY, finger_pitch_deg=pitch))
+    level = SimulatedRig(_coarse(identity=IDENTITY))
+    pitched = SimulatedRig(_coarse(identity=IDENTITY, pitch_deg=pitch))
     truth = pitched.finger_truth()
     mask = truth.mask
     assert mask.sum() > 0.8 * level.finger_truth().mask.sum()
@@ -243,29 +300,29 @@ def test_pitch_turns_the_finger_about_the_optical_x_axis(pitch):
 
 def test_different_identities_are_different_fingers():
     normals = [
-        SimulatedRig(_coarse(finger_identity=identity)).finger_truth()
+        SimulatedRig(_coarse(identity=identity)).finger_truth()
         for identity in (IDENTITY, IDENTITY + 1, None)
     ]
     both = normals[0].mask & normals[1].mask & normals[2].mask
     for i, j in ((0, 1), (0, 2), (1, 2)):
         dots = np.sum(normals[i].normals_ps[both] * normals[j].normals_ps[both], axis=-1)
         assert np.median(np.degrees(np.arccos(np.clip(dots, -1, 1)))) > 2.0
-    again = SimulatedRig(_coarse(finger_identity=IDENTITY)).finger_truth()
+    again = SimulatedRig(_coarse(identity=IDENTITY)).finger_truth()
     np.testing.assert_array_equal(again.normals_ps, normals[0].normals_ps)
 
 
 @pytest.mark.parametrize(
-    ("field", "value", "message"),
+    ("field", "value"),
     [
-        ("finger_identity", -1, "finger_identity"),
-        ("finger_identity", True, "finger_identity"),
-        ("finger_identity", 2.5, "finger_identity"),
-        ("finger_roll_deg", 46.0, "finger_roll_deg"),
-        ("finger_yaw_deg", -91.0, "finger_yaw_deg"),
-        ("finger_pitch_deg", 16.0, "finger_pitch_deg"),
-        ("finger_roll_deg", float("nan"), "finger_roll_deg"),
+        ("identity", -1),
+        ("identity", True),
+        ("identity", 2.5),
+        ("roll_deg", 46.0),
+        ("yaw_deg", -91.0),
+        ("pitch_deg", 16.0),
+        ("roll_deg", float("nan")),
     ],
 )
-def test_bad_pose_or_identity_is_refused(field, value, message):
-    with pytest.raises(FingerpsDriverError, match=message):
-        RigConfig(**{field: value})
+def test_bad_pose_or_identity_is_refused(field, value):
+    with pytest.raises(FingerpsDriverError, match=rf"finger\.{field}"):
+        RigConfig(finger=FingertipShape(**{field: value}))

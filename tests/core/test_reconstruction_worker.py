@@ -342,7 +342,7 @@ def test_the_calibration_is_prepared_ahead_for_the_camera_seen() -> None:
     rig = SimulatedRig()
     worker.prepare_ahead()  # nothing in force yet: nothing to do
     worker.on_lights(lights())
-    height, width = rig.config.height, rig.config.width
+    height, width = rig.camera.height, rig.camera.width
     camera = CameraInfo(width=width, height=height,
                         k=[float(x) for x in np.asarray(rig.camera_matrix).reshape(-1)])
     worker.on_camera_info(camera)

@@ -22,8 +22,7 @@ import pytest
 import scipy.ndimage
 from test_surface_unrolling import APEX_MM, K, cylinder
 
-from fingerps_driver.simulation import Scene, SimulatedRig
-from fingerps_driver.simulation.rig import RigConfig
+from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
 from fingerps_recon.errors import FingerpsReconError, RolledPrintError
 from fingerps_recon.photometric.frames import optical_to_ps
 from fingerps_recon.photometric.pipeline import Reconstruction, reconstruct
@@ -213,15 +212,15 @@ def test_a_distorted_shape_is_not_unrolled() -> None:
 
 
 def test_rig_finger_period() -> None:
-    rig = SimulatedRig(RigConfig(ridge_ellipticity=1.0))
+    rig = SimulatedRig(RigConfig(finger=FingertipShape(ridge_ellipticity=1.0)))
     truth = rig.finger_truth()
     result = rolled_print(truth.depth_m, mask=truth.mask, camera_matrix=rig.camera_matrix,
                           normals_ps=truth.normals_ps)
     period = dominant_period_mm(result)
-    print(f"\nrig finger: period {period:.4f} mm (skin {1e3 * rig.config.ridge_period_m} mm), "
+    print(f"\nrig finger: period {period:.4f} mm (skin {1e3 * rig.fingertip.ridge_period_m} mm), "
           f"area {result.area_mm2:.0f} mm^2, strain rms {100 * result.strain_rms:.2f} % max "
           f"{100 * result.strain_max:.1f} %, coherence {result.coherence:.3f}")
-    assert abs(period / (1e3 * rig.config.ridge_period_m) - 1) <= PERIOD_TOLERANCE
+    assert abs(period / (1e3 * rig.config.finger.ridge_period_m) - 1) <= PERIOD_TOLERANCE
     assert result.coherence > 0.9
 
 
@@ -236,7 +235,7 @@ def rig_case() -> tuple[SimulatedRig, Reconstruction, np.ndarray]:
     recon = reconstruct(images, lights_ps=rig.light_directions_ps(),
                         camera_matrix=rig.camera_matrix, full_scale=255.0,
                         intensities=rig.light_intensities())
-    plain = SimulatedRig(RigConfig(ridge_height_m=0.0)).finger_truth()
+    plain = SimulatedRig(RigConfig(finger=FingertipShape(ridge_height_m=0.0))).finger_truth()
     ridges = np.where(truth.mask & plain.mask, plain.depth_m - truth.depth_m, 0.0)
     return rig, recon, ridges
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
+from fingerps_driver import simulation
 from fingerps_driver.errors import FingerpsDriverError
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
 from fingerps_recon.photometric.frames import optical_to_ps
@@ -24,13 +25,13 @@ def truth(rig):
 
 
 def _apex_px(rig: SimulatedRig) -> tuple[int, int]:
-    u, v = rig.camera.project(np.asarray(rig.config.finger_apex_optical_m))
+    u, v = rig.camera.project(np.asarray(rig.config.finger.apex_optical_m))
     return round(float(u)), round(float(v))
 
 
 @pytest.mark.parametrize(("bit_depth", "dtype", "top"), [(8, np.uint8, 255), (12, np.uint16, 4095)])
 def test_frames_have_the_camera_shape_and_dtype(bit_depth, dtype, top):
-    rig = SimulatedRig(RigConfig(bit_depth=bit_depth))
+    rig = SimulatedRig(RigConfig(sensor=simulation.SensorModel(bit_depth=bit_depth)))
     assert rig.max_value() == top
     assert rig.led_count == 7
     assert rig.camera_matrix.shape == (3, 3)
@@ -45,18 +46,18 @@ def test_frames_have_the_camera_shape_and_dtype(bit_depth, dtype, top):
 
 def test_camera_and_led_geometry(rig):
     k = rig.camera_matrix
-    z = rig.config.finger_apex_optical_m[2]
+    z = rig.config.finger.apex_optical_m[2]
     assert 0.080 <= z <= 0.100
     assert k[0, 0] == k[1, 1] == pytest.approx(z / 30e-6)
     # the field at the apex is ~20 x 15 mm
-    assert rig.config.width * z / k[0, 0] == pytest.approx(20e-3, rel=0.03)
-    assert rig.config.height * z / k[1, 1] == pytest.approx(15e-3, rel=0.03)
+    assert rig.camera.width * z / k[0, 0] == pytest.approx(20e-3, rel=0.03)
+    assert rig.camera.height * z / k[1, 1] == pytest.approx(15e-3, rel=0.03)
     ring = np.hypot(rig.led_positions_optical[:, 0], rig.led_positions_optical[:, 1])
     assert np.all((ring >= 35e-3) & (ring <= 45e-3))
     assert np.all(np.abs(rig.led_positions_optical[:, 2]) < 5e-3)
     lights = rig.light_directions_ps()
     np.testing.assert_allclose(np.linalg.norm(lights, axis=1), 1.0, atol=1e-12)
-    apex = np.asarray(rig.config.finger_apex_optical_m)
+    apex = np.asarray(rig.config.finger.apex_optical_m)
     expected = optical_to_ps(rig.led_positions_optical - apex)
     expected /= np.linalg.norm(expected, axis=1, keepdims=True)
     np.testing.assert_allclose(lights, expected, atol=1e-12)
@@ -76,9 +77,9 @@ def test_mask_is_a_silhouette_of_the_right_size(rig, truth):
     points = rig.finger_points_optical()
     cols = np.flatnonzero(mask[v0])
     width = points[v0, cols.max(), 0] - points[v0, cols.min(), 0]
-    assert width == pytest.approx(2 * rig.config.finger_radius_m * np.sin(np.radians(65)), rel=0.02)
+    assert width == pytest.approx(2 * rig.config.finger.radius_m * np.sin(np.radians(65)), rel=0.02)
     assert 13e-3 < width < 17e-3
-    assert np.nanmin(truth.depth_m) == pytest.approx(rig.config.finger_apex_optical_m[2], abs=30e-6)
+    assert np.nanmin(truth.depth_m) == pytest.approx(rig.config.finger.apex_optical_m[2], abs=30e-6)
 
 
 def test_truth_normals_are_unit_and_face_the_camera(truth):
@@ -122,16 +123,17 @@ def test_ridge_period_in_the_truth_normals(rig, truth):
     k = int(np.argmax(profile[:half]))
     a, b, c = profile[k - 1 : k + 2]
     peak = k + 0.5 * (a - c) / (a - 2 * b + c)
-    period_m = 2 * half / peak * rig.config.finger_apex_optical_m[2] / rig.camera_matrix[0, 0]
+    period_m = 2 * half / peak * rig.config.finger.apex_optical_m[2] / rig.camera_matrix[0, 0]
     print(f"\nridge period from the FFT {1e3 * period_m:.3f} mm")
-    assert period_m == pytest.approx(rig.config.ridge_period_m, rel=0.1)
+    assert period_m == pytest.approx(rig.config.finger.ridge_period_m, rel=0.1)
     # ridge flanks tilt the normals by roughly atan(pi * height / period) ~ 17 deg
     tilt = np.degrees(np.arccos(truth.normals_ps[v0 - 20 : v0 + 20, u0 - 20 : u0 + 20, 2]))
     assert 10.0 < tilt.max() < 25.0
 
 
 def test_lambertian_render_equals_the_shading_of_the_truth():
-    rig = SimulatedRig(RigConfig(reflectance=Reflectance.LAMBERT, bit_depth=12))
+    rig = SimulatedRig(RigConfig(skin=simulation.SkinReflectance(model=Reflectance.LAMBERT),
+                                 sensor=simulation.SensorModel(bit_depth=12)))
     truth = rig.finger_truth()
     mask = truth.mask
     points = rig.finger_points_optical()[mask]
@@ -143,16 +145,16 @@ def test_lambertian_render_equals_the_shading_of_the_truth():
         cos_lobe = -(to_led @ leds.axes_optical[k]) / dist
         field = (leds.powers[k] * (leds.reference_distance_m / dist) ** 2
                  * cos_lobe ** leds.exponents[k])
-        expected = rig.config.exposure_gain * field * lambertian_shading(
+        expected = rig.config.sensor.exposure_gain * field * lambertian_shading(
             truth.normals_ps[mask], lights, rho=truth.albedo[mask]
         )
         noiseless = rig.noiseless(Scene.FINGER, [k])
         np.testing.assert_allclose(noiseless[mask], expected, rtol=1e-4, atol=1e-6)
         assert np.all(noiseless[~mask] == 0.0)
         frame = rig.render(Scene.FINGER, [k], rng=np.random.default_rng(k))
-        residual = frame[mask] / rig.max_value() - rig.config.ambient_fraction - expected
+        residual = frame[mask] / rig.max_value() - rig.config.sensor.ambient_fraction - expected
         # shot noise sigma = sqrt(signal / full_well); quantisation 1/4095
-        sigma = np.sqrt(expected / rig.config.full_well_e + 1e-6 + 1 / (12 * 4095**2))
+        sigma = np.sqrt(expected / rig.config.sensor.full_well_e + 1e-6 + 1 / (12 * 4095**2))
         z = residual / sigma
         assert abs(z.mean()) < 0.02 and 0.95 < z.std() < 1.05
     # the field falls off across the finger by > 10 %
@@ -160,7 +162,7 @@ def test_lambertian_render_equals_the_shading_of_the_truth():
 
 
 def test_hk_adds_a_visible_but_not_dominant_single_scattering_term(rig, truth):
-    lam = SimulatedRig(RigConfig(reflectance=Reflectance.LAMBERT))
+    lam = SimulatedRig(RigConfig(skin=simulation.SkinReflectance(model=Reflectance.LAMBERT)))
     mask = truth.mask
     hk = rig.noiseless(Scene.FINGER, [2])[mask]
     lambert = lam.noiseless(Scene.FINGER, [2])[mask]
@@ -212,8 +214,8 @@ def _analytic_mirror_point(centre, radius, led):
 
 
 def test_sphere_highlight_is_at_the_mirror_reflection(rig):
-    centre = np.asarray(rig.config.sphere_center_optical_m)
-    radius = rig.config.sphere_radius_m
+    centre = np.asarray(rig.config.sphere.center_optical_m)
+    radius = rig.config.sphere.radius_m
     for k in range(rig.led_count):
         point = _analytic_mirror_point(centre, radius, rig.led_positions_optical[k])
         np.testing.assert_allclose(rig.sphere.specular_point(rig.led_positions_optical[k]),
@@ -235,11 +237,11 @@ def test_sphere_highlight_is_at_the_mirror_reflection(rig):
 
 def test_sphere_silhouette_shows_against_the_dark_background(rig):
     all_lit = rig.noiseless(Scene.SPHERE, range(rig.led_count))
-    centre = np.asarray(rig.config.sphere_center_optical_m)
+    centre = np.asarray(rig.config.sphere.center_optical_m)
     u, v = rig.camera.project(centre)
     assert all_lit[int(v), int(u)] > 0.05
     dist = np.linalg.norm(centre)
-    radius_px = np.tan(np.arcsin(rig.config.sphere_radius_m / dist)) * rig.camera_matrix[0, 0]
+    radius_px = np.tan(np.arcsin(rig.config.sphere.radius_m / dist)) * rig.camera_matrix[0, 0]
     assert all_lit[int(v), int(u + radius_px + 4)] == 0.0
     assert all_lit[int(v), int(u + radius_px - 4)] > 0.02
 
@@ -288,22 +290,23 @@ def test_after_warm_up_frames_come_from_the_cache(rig, monkeypatch: pytest.Monke
     rng = np.random.default_rng(0)
     for k in range(rig.led_count):
         frame = rig.render(Scene.FINGER, [k], rng=rng)
-        assert frame.shape == (rig.config.height, rig.config.width) and frame.any()
+        assert frame.shape == (rig.camera.height, rig.camera.width) and frame.any()
     assert rig.render(Scene.FINGER, list(range(rig.led_count)), rng=rng).any()
 
 
 @pytest.mark.parametrize(
     "kwargs",
     [
-        {"bit_depth": 10},
-        {"led_powers": (1.0, 1.0)},
-        {"ridge_period_m": 0.0},
-        {"ridge_height_m": 400e-6},
-        {"sphere_center_optical_m": (0.0, 0.0, 0.001)},
+        {"sensor": simulation.SensorModel(bit_depth=10)},
+        {"leds": simulation.LedLayout(powers=(1.0, 1.0))},
+        {"finger": simulation.FingertipShape(ridge_period_m=0.0)},
+        {"finger": simulation.FingertipShape(ridge_height_m=400e-6)},
+        {"sphere": simulation.MirrorSphere(center_optical_m=(0.0, 0.0, 0.001))},
+        {"camera": simulation.PinholeCamera(width=8)},
     ],
 )
 def test_bad_configurations_are_refused(kwargs):
-    with pytest.raises(FingerpsDriverError):
+    with pytest.raises(FingerpsDriverError, match="RigConfig"):
         RigConfig(**kwargs)
 
 
@@ -318,7 +321,7 @@ def test_bad_render_arguments_are_refused(rig):
 
 
 def test_a_burst_is_one_frame_per_led_with_the_noise_seeded_as_said() -> None:
-    rig = SimulatedRig(RigConfig(width=64, height=48))
+    rig = SimulatedRig(RigConfig(camera=simulation.PinholeCamera(width=64, height=48)))
     by_led = [rig.render(Scene.FINGER, [k], rng=np.random.default_rng(5 + k))
               for k in range(rig.led_count)]
     assert np.array_equal(rig.render_burst(Scene.FINGER, seed=5), np.stack(by_led))

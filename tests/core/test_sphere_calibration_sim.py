@@ -42,10 +42,10 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def test_light_directions_from_the_sphere(rig, sphere_images):
     result = calibrate_lights(sphere_images, camera_matrix=rig.camera_matrix,
-                              radius_m=rig.config.sphere_radius_m)
+                              radius_m=rig.config.sphere.radius_m)
     assert result.ok, result.problems
 
-    center = np.asarray(rig.config.sphere_center_optical_m)
+    center = np.asarray(rig.config.sphere.center_optical_m)
     center_error_mm = 1e3 * np.linalg.norm(result.sphere_center_optical_m - center)
     specular = np.stack([rig.sphere.specular_point(p) for p in rig.led_positions_optical])
     truth = rig.led_positions_optical - specular  # near light: from the mirror point
@@ -73,7 +73,7 @@ def test_light_directions_from_the_sphere(rig, sphere_images):
 def test_sphere_cut_by_the_image_border(rig):
     # Centre 300 px left of the principal point: a third of the ball is outside the image.
     cut = simulation.SimulatedRig(
-        simulation.RigConfig(sphere_center_optical_m=(-9.0e-3, 0.0, 0.094))
+        simulation.RigConfig(sphere=simulation.MirrorSphere(center_optical_m=(-9.0e-3, 0.0, 0.094)))
     )
     images = np.stack([
         cut.render(simulation.Scene.SPHERE, [k], rng=np.random.default_rng(300 + k))
@@ -81,9 +81,9 @@ def test_sphere_cut_by_the_image_border(rig):
     ])
     assert np.any(images[:, :, 0] > 5)  # really cut
     result = calibrate_lights(images, camera_matrix=cut.camera_matrix,
-                              radius_m=cut.config.sphere_radius_m)
+                              radius_m=cut.config.sphere.radius_m)
     assert result.ok, result.problems
-    center = np.asarray(cut.config.sphere_center_optical_m)
+    center = np.asarray(cut.config.sphere.center_optical_m)
     assert 1e3 * np.linalg.norm(result.sphere_center_optical_m - center) < 0.2
     specular = np.stack([cut.sphere.specular_point(p) for p in cut.led_positions_optical])
     errors_deg = _angle_deg(result.directions_optical, cut.led_positions_optical - specular)
@@ -92,8 +92,8 @@ def test_sphere_cut_by_the_image_border(rig):
 
 def test_sphere_edge_points_hug_the_true_silhouette(rig, sphere_images):
     edges = sphere_edge_points(sphere_images)
-    center = np.asarray(rig.config.sphere_center_optical_m)
-    r = rig.config.sphere_radius_m
+    center = np.asarray(rig.config.sphere.center_optical_m)
+    r = rig.config.sphere.radius_m
     rays = np.column_stack([edges, np.ones(len(edges))]) @ np.linalg.inv(rig.camera_matrix).T
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     beta = np.arccos(rays @ (center / np.linalg.norm(center)))
@@ -104,7 +104,7 @@ def test_sphere_edge_points_hug_the_true_silhouette(rig, sphere_images):
 
 
 def test_flat_field_from_the_white_target(rig):
-    h, w = rig.config.height, rig.config.width
+    h, w = rig.camera.height, rig.camera.width
     white = np.stack([
         rig.render(simulation.Scene.WHITE_TARGET, [k], rng=np.random.default_rng(200 + k))
         for k in range(rig.led_count)

@@ -305,7 +305,7 @@ class RigMessages:
             header=Header(frame_id=FRAME_ID), camera_name=camera_name,
             directions=[Vector3(x=float(x), y=float(y), z=float(z)) for x, y, z in directions],
             relative_intensities=[float(i) for i in intensities / intensities.max()],
-            sphere_radius=self.rig.config.sphere_radius_m)
+            sphere_radius=self.rig.config.sphere.radius_m)
 
     def burst(self, images: np.ndarray, burst_id: int, *, leds: list[int] | None = None,
               encoding: str = "mono8", nanosec: int | None = None) -> Burst:
@@ -319,8 +319,8 @@ class RigMessages:
                               exposure_time=0.01, led_intensity=1.0,
                               image=array_to_image(images[k], encoding=encoding, header=header))
                   for k in (range(count) if leds is None else leds)]
-        info = CameraInfo(header=header, width=self.rig.config.width,
-                          height=self.rig.config.height,
+        info = CameraInfo(header=header, width=self.rig.camera.width,
+                          height=self.rig.camera.height,
                           k=[float(x) for x in self.rig.camera_matrix.reshape(-1)])
         return Burst(header=header, burst_id=burst_id, frames=frames, camera_info=info)
 

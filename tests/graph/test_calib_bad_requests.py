@@ -55,7 +55,7 @@ def _blank(rig: SimulatedRig, size: int) -> list[TaggedFrame]:
 
 
 def _camera_info(rig: SimulatedRig) -> CameraInfo:
-    info = CameraInfo(width=rig.config.width, height=rig.config.height,
+    info = CameraInfo(width=rig.camera.width, height=rig.camera.height,
                       distortion_model="plumb_bob", d=[0.0] * 5)
     info.header.frame_id = "fingerps_camera_optical_frame"
     info.k = [float(x) for x in np.asarray(rig.camera_matrix).ravel()]
@@ -154,7 +154,7 @@ def test_bad_flat_field_frames_are_refused_and_the_node_keeps_serving(
     first_lights = graph.publish_camera_info(spin_until, _render(rig, Scene.SPHERE))
     assert first_lights.success, first_lights.message
     wrong_size = graph.flat(_blank(rig, 64))
-    _assert_refused(wrong_size, calib, "64x64", f"{rig.config.width}x{rig.config.height}")
+    _assert_refused(wrong_size, calib, "64x64", f"{rig.camera.width}x{rig.camera.height}")
     assert graph.flats[-1] == good.flat_field
     refused = str(4 + graph.refused_while_waiting)
     spin_until(lambda: graph.values().get("calls_refused") == refused,
@@ -192,7 +192,7 @@ def test_a_bad_sphere_radius_is_refused_and_the_node_keeps_serving(
     assert "sphere_radius" in values["last_error"], values
     assert graph.lights[-1] == good.calibration  # nothing new published
 
-    again = graph.lights_call(rig.config.sphere_radius_m, sphere)
+    again = graph.lights_call(rig.config.sphere.radius_m, sphere)
     assert again.success, again.message
     _stopped_cleanly(calib)
 

@@ -71,7 +71,7 @@ def test_flat_field_and_lights_through_the_driver(
     assert {m.encoding for m in maps} == {"32FC1"}
     for image in maps:
         portion = image_to_array(image)
-        assert portion.shape == (rig.config.height, rig.config.width)
+        assert portion.shape == (rig.camera.height, rig.camera.width)
         assert np.max(portion) == np.float32(1.0) and np.min(portion) > 0.0
     intensities = np.asarray(flat.flat_field.relative_intensities)
     assert intensities.shape == (rig.led_count,) and intensities.max() == 1.0
@@ -80,7 +80,7 @@ def test_flat_field_and_lights_through_the_driver(
     _set_scene(set_parameters, "sphere")
     lights_client = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
     lights = call_service(lights_client,
-                          CalibrateLights.Request(sphere_radius=rig.config.sphere_radius_m))
+                          CalibrateLights.Request(sphere_radius=rig.config.sphere.radius_m))
     assert lights.success, lights.message
     calibration = lights.calibration
     directions = np.array([[d.x, d.y, d.z] for d in calibration.directions])
@@ -91,10 +91,10 @@ def test_flat_field_and_lights_through_the_driver(
     errors = _angles_deg(directions, rig.led_positions_optical - specular)
     print(f"\nlight direction errors (deg) {np.round(errors, 3).tolist()}")
     assert np.all(errors < MAX_DIRECTION_ERROR_DEG), errors
-    assert calibration.sphere_radius == rig.config.sphere_radius_m
+    assert calibration.sphere_radius == rig.config.sphere.radius_m
     center = [calibration.sphere_center.x, calibration.sphere_center.y,
               calibration.sphere_center.z]
-    assert np.linalg.norm(np.subtract(center, rig.config.sphere_center_optical_m)) < 0.5e-3
+    assert np.linalg.norm(np.subtract(center, rig.config.sphere.center_optical_m)) < 0.5e-3
     # The flat field made earlier gives the relative intensities.
     np.testing.assert_allclose(calibration.relative_intensities, intensities)
     assert calibration.header.frame_id == "fingerps_camera_optical_frame"

@@ -22,7 +22,7 @@ import yaml
 from rclpy.node import Node
 
 from fingerps_calib.intrinsics.camera_info_yaml import CameraIntrinsics, save_camera_info
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import MirrorSphere, RigConfig, Scene, SensorModel, SimulatedRig
 from fingerps_msgs.msg import FlatField, LightCalibration, TaggedFrame
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
 from fingerps_ros import qos, topics
@@ -50,9 +50,11 @@ def _render(rig: SimulatedRig, scene: Scene, seed: int) -> np.ndarray:
     return rig.render_burst(scene, seed=seed)
 
 
-def _sphere(place: str, seed: int = 0, **config) -> np.ndarray:
-    return _render(SimulatedRig(RigConfig(sphere_center_optical_m=PLACES[place], **config)),
-                   Scene.SPHERE, seed)
+def _sphere(place: str, seed: int = 0, *, sensor: SensorModel | None = None,
+            **sphere) -> np.ndarray:
+    config = RigConfig(sphere=MirrorSphere(center_optical_m=PLACES[place], **sphere),
+                       sensor=sensor or SensorModel())
+    return _render(SimulatedRig(config), Scene.SPHERE, seed)
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +64,7 @@ def rig() -> SimulatedRig:
 
 def _camera_info_file(path: Path, rig: SimulatedRig) -> Path:
     save_camera_info(path, CameraIntrinsics(
-        width=rig.config.width, height=rig.config.height, camera_matrix=rig.camera_matrix,
+        width=rig.camera.width, height=rig.camera.height, camera_matrix=rig.camera_matrix,
         distortion_model="plumb_bob", distortion=np.zeros(5), camera_name="fingerps_sim"))
     return path
 
@@ -130,7 +132,7 @@ def test_placements_are_combined_saved_and_reloaded(ros_node, start_node, spin_u
     assert second.success, second.message
     lights = second.calibration
     assert lights.placements == 2 and len(lights.led_positions) == rig.led_count
-    apex = np.asarray(rig.config.finger_apex_optical_m)
+    apex = np.asarray(rig.config.finger.apex_optical_m)
     errors = _angles_deg(_vectors(lights.directions), rig.led_positions_optical - apex)
     print(f"\ndirection errors from the apex, 2 placements (deg) {np.round(errors, 3).tolist()}")
     assert np.all(errors < 0.3), errors
@@ -200,11 +202,11 @@ def test_bad_input_is_refused_and_the_calibration_stays(ros_node, start_node, sp
     saved = (directory / "lights.yaml").read_bytes()
     assert yaml.safe_load(saved)["camera_name"] == "kiosk_1"
     sphere = _sphere("A", seed=30)
-    matte = SimulatedRig(RigConfig(sphere_center_optical_m=PLACES["A"],
-                                   sphere_specular_reflectance=0.0))
+    matte = SimulatedRig(RigConfig(sphere=MirrorSphere(center_optical_m=PLACES["A"],
+                                                       specular_reflectance=0.0)))
     missing = sphere.copy()
     missing[3] = matte.render(Scene.SPHERE, [3], rng=np.random.default_rng(3))
-    cut = SimulatedRig(RigConfig(sphere_center_optical_m=(-9.0e-3, 0.0, 0.094)))
+    cut = SimulatedRig(RigConfig(sphere=MirrorSphere(center_optical_m=(-9.0e-3, 0.0, 0.094))))
     cases = [
         ("no sphere", lambda: calib.calibrate_lights(_render(rig, Scene.EMPTY, 70)),
          "sphere not found"),
@@ -213,7 +215,8 @@ def test_bad_input_is_refused_and_the_calibration_stays(ros_node, start_node, sp
         ("highlight missing", lambda: calib.calibrate_lights(missing),
          "LED 3: no highlight"),
         ("saturated blob", lambda: calib.calibrate_lights(
-            _sphere("A", psf_sigma_px=6.0, exposure_gain=4.0)), "saturated into a blob"),
+            _sphere("A", psf_sigma_px=6.0, sensor=SensorModel(exposure_gain=4.0))),
+         "saturated into a blob"),
         ("wrong radius", lambda: calib.calibrate_lights(sphere, radius=0.002),
          "is the radius right?"),
         ("wrong size", lambda: calib.calibrate_lights(sphere[:, :400, :600]),

@@ -45,7 +45,7 @@ def _calibration(width: int, height: int, fx: float) -> CameraInfo:
 def test_set_camera_info_is_stored_published_at_once_and_loaded_after_a_restart(
         ros_node: Node, start_node, spin_until, call_service) -> None:
     rig = SimulatedRig(RigConfig())
-    width, height = rig.config.width, rig.config.height
+    width, height = rig.camera.width, rig.camera.height
     store = Path(os.environ["ROS_HOME"]) / "camera_info" / "fingerps_sim.yaml"
     driver = start_node("fingerps_driver", "driver_node")
     driver.wait_in_graph(ros_node, "driver", NS)
@@ -119,7 +119,7 @@ def test_an_explicit_url_that_is_missing_or_of_another_size_says_what_to_run(
     rig = SimulatedRig(RigConfig())
     client = ros_node.create_client(SetCameraInfo, SERVICE)
     response = call_service(client, SetCameraInfo.Request(
-        camera_info=_calibration(rig.config.width, rig.config.height, 800.0)))
+        camera_info=_calibration(rig.camera.width, rig.camera.height, 800.0)))
     assert response.success and (tmp_path / "cal" / "kiosk_cam.yaml").exists()
     driver.stop()
 
@@ -133,5 +133,5 @@ def test_an_explicit_url_that_is_missing_or_of_another_size_says_what_to_run(
     info = _burst_info(ros_node, call_service)
     np.testing.assert_allclose(np.reshape(info.k, (3, 3)), rig.camera_matrix)
     lines = [line for line in again.output.splitlines() if "is for 320x240 images" in line]
-    assert len(lines) == 1 and (f"delivers {rig.config.width}x{rig.config.height}"
+    assert len(lines) == 1 and (f"delivers {rig.camera.width}x{rig.camera.height}"
                                 in lines[0]), again.output

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from rclpy.node import Node
 
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
 from fingerps_msgs.srv import CaptureBurst
 from fingerps_ros import topics
 from fingerps_ros.image_conversion import image_to_array
@@ -48,15 +48,15 @@ def test_the_driver_shows_the_fingerprint_it_is_given_and_takes_a_new_pose(
         return _correlation(_ridges(frame), _ridges(reference.astype(np.float64)))
 
     frame = _first_frame(capture, call_service)
-    assert ridge_match(frame, RigConfig(finger_identity=3)) > 0.5
+    assert ridge_match(frame, RigConfig(finger=FingertipShape(identity=3))) > 0.5
     assert ridge_match(frame, RigConfig()) < 0.2  # not the spiral
 
     refused = set_roll(60.0)
     assert not refused.successful and "45" in refused.reason, refused.reason
     assert set_roll(8.0).successful
     frame = _first_frame(capture, call_service)
-    assert ridge_match(frame, RigConfig(finger_identity=3, finger_roll_deg=8.0)) > 0.5
-    assert ridge_match(frame, RigConfig(finger_identity=3)) < 0.3
+    assert ridge_match(frame, RigConfig(finger=FingertipShape(identity=3, roll_deg=8.0))) > 0.5
+    assert ridge_match(frame, RigConfig(finger=FingertipShape(identity=3))) < 0.3
 
     driver.send_signal(signal.SIGTERM)
     assert driver.wait() == 0

@@ -2,7 +2,7 @@
 
 recon_node runs as a real process with ``fingerprint:=true``; the test plays the driver and
 the calibration (as tests/graph/test_recon_graph.py does) with bursts of a synthetic finger
-(``RigConfig.finger_identity``). The print must arrive on ``fingerprint`` with the burst's
+(``FingertipShape.identity``). The print must arrive on ``fingerprint`` with the burst's
 stamp, as mono8 in the frame that names its resolution, be as large as a fingertip at
 500 ppi and carry dark ridges of the finger's period (how well it matches the finger's
 ground-truth print is measured by bench/bench_fingerprint.py); a burst whose finger is too
@@ -19,7 +19,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from stamps import stamp_key
 from test_recon_graph import NS, _diagnostic_values
 
-from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
 from fingerps_msgs.msg import Burst, LightCalibration
 from fingerps_ros import qos, topics
 from fingerps_ros.image_conversion import image_to_array
@@ -30,7 +30,7 @@ PX_PER_MM = 500 / 25.4
 
 @pytest.fixture(scope="module")
 def rig() -> SimulatedRig:
-    return SimulatedRig(RigConfig(finger_identity=IDENTITY))
+    return SimulatedRig(RigConfig(finger=FingertipShape(identity=IDENTITY)))
 
 
 def _images(rig: SimulatedRig, seed: int, mask: np.ndarray | None = None) -> np.ndarray:
@@ -95,8 +95,8 @@ def test_a_burst_in_gives_a_500ppi_fingerprint_out(
     assert 0.35 < period < 0.6, period  # the generator's periods are 0.40-0.55 mm
 
     # A finger of which only a 4 mm square is in view: no print, a reason, outputs as usual.
-    small = np.zeros((rig.config.height, rig.config.width), bool)
-    cy, cx = rig.config.height // 2, rig.config.width // 2
+    small = np.zeros((rig.camera.height, rig.camera.width), bool)
+    cy, cx = rig.camera.height // 2, rig.camera.width // 2
     small[cy - 60:cy + 60, cx - 60:cx + 60] = True
     patch = rig_messages.burst(_images(rig, 200, mask=small), 2)
     burst_pub.publish(patch)

@@ -246,7 +246,7 @@ def test_rig_finger_without_mask(offline_recon: Callable, tmp_path: Path,
     run = _ok(offline_recon(folder, "--out", out, "--pixel-size", "3e-5"))
     assert "no mask.png: the pipeline's finger mask" in run.stdout
     normals = np.load(out / "normals.npy")
-    assert normals.shape == (rig.config.height, rig.config.width, 3)
+    assert normals.shape == (rig.camera.height, rig.camera.width, 3)
     valid = np.linalg.norm(normals, axis=2) > 0
     assert (valid & truth.mask).sum() > 0.95 * truth.mask.sum()
     assert (valid & ~truth.mask).sum() < 0.01 * truth.mask.sum()

@@ -110,7 +110,7 @@ def test_recon_node_reconstructs_complete_bursts_and_survives_broken_ones(
         {name: set(r) for name, r in received.items()}
     assert recon.running()
 
-    height, width = rig.config.height, rig.config.width
+    height, width = rig.camera.height, rig.camera.width
     normals_msg = received[topics.NORMALS][stamp_key(good.header)]
     assert normals_msg.encoding == "32FC3" and normals_msg.header.frame_id == FRAME_ID
     normals_optical = image_to_array(normals_msg)

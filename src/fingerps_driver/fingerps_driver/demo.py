@@ -274,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
         for i, center in enumerate(SPHERE_PLACEMENTS):
             node.move_sphere(center)
             lights = node.call(node.cal_lights, CalibrateLights.Request(
-                sphere_radius=rig.config.sphere_radius_m, add_placement=i > 0),
+                sphere_radius=rig.config.sphere.radius_m, add_placement=i > 0),
                 timeout=60.0, what=f"light calibration, sphere placement {i + 1}")
             if not lights.success:
                 raise DemoError(f"light calibration failed: {lights.message}")

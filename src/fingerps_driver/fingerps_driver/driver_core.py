@@ -248,7 +248,8 @@ class DriverCore:
                 self.renderer.rig = self.renderer.moved_sphere(center)
 
     def pose_finger(self, finger: Mapping[str, Any]) -> None:
-        """Rebuild the simulated finger with ``finger`` (RigConfig fields) and log it."""
+        """Rebuild the simulated finger with ``finger`` (``FingertipShape`` fields) and log
+        it."""
         if self.renderer is None:
             return
         rig = self.renderer.posed_finger(finger)  # outside the lock: bursts go on meanwhile

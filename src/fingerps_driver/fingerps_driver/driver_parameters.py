@@ -30,6 +30,7 @@ from fingerps_driver.capture.burst_plan import (
     make_plan,
 )
 from fingerps_driver.simulation import Reflectance, RigConfig, Scene
+from fingerps_driver.simulation.rig_config import MAX_PITCH_DEG, MAX_ROLL_DEG, MAX_YAW_DEG
 from fingerps_ros.parameter_table import ParameterRow, one_of
 
 Values = Callable[[str], Any]
@@ -277,16 +278,16 @@ def driver_parameters(value: Values) -> tuple[ParameterRow, ...]:
         _finger_angle(
             "sim.finger_roll_deg",
             "Rotation of the simulated finger about its own axis, degrees (+ brings the skin "
-            "at the apex towards +x)", 45.0,
+            "at the apex towards +x)", MAX_ROLL_DEG,
             " (beyond, the skin seen leaves the rolled print)"),
         _finger_angle(
             "sim.finger_yaw_deg",
             "Rotation of the simulated finger about the optical axis through its apex, "
-            "degrees, from +x towards +y (clockwise as displayed)", 90.0),
+            "degrees, from +x towards +y (clockwise as displayed)", MAX_YAW_DEG),
         _finger_angle(
             "sim.finger_pitch_deg",
             "Then its rotation about the optical x axis through its apex, degrees, from +y "
-            "towards +z (+ brings the tip towards the camera)", 15.0,
+            "towards +z (+ brings the tip towards the camera)", MAX_PITCH_DEG,
             " (beyond, a margin comes near grazing)"),
         ParameterRow(
             "sim.finger_shift_mm", [0.0, 0.0],
@@ -325,16 +326,17 @@ def burst_plan(value: Values) -> BurstPlan:
 
 
 def finger_config(value: Values) -> dict[str, Any]:
-    """RigConfig fields of the simulated finger's identity and pose from sim.finger_*."""
+    """``FingertipShape`` fields of the simulated finger's identity and pose from
+    sim.finger_*."""
     identity = int(value("sim.finger_identity"))
     shift = [1e-3 * float(v) for v in value("sim.finger_shift_mm")]
-    x, y, z = RigConfig().finger_apex_optical_m
+    x, y, z = RigConfig().finger.apex_optical_m
     return {
-        "finger_identity": None if identity < 0 else identity,
-        "finger_roll_deg": float(value("sim.finger_roll_deg")),
-        "finger_yaw_deg": float(value("sim.finger_yaw_deg")),
-        "finger_pitch_deg": float(value("sim.finger_pitch_deg")),
-        "finger_apex_optical_m": (x + shift[0], y + shift[1], z),
+        "identity": None if identity < 0 else identity,
+        "roll_deg": float(value("sim.finger_roll_deg")),
+        "yaw_deg": float(value("sim.finger_yaw_deg")),
+        "pitch_deg": float(value("sim.finger_pitch_deg")),
+        "apex_optical_m": (x + shift[0], y + shift[1], z),
     }
 
 

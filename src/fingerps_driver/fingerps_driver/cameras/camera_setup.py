@@ -25,10 +25,21 @@ from fingerps_driver.cameras.camera_folder import FolderCamera
 from fingerps_driver.cameras.camera_info_manager import CameraInfoManager
 from fingerps_driver.cameras.camera_opencv import OpenCvCamera, parse_device
 from fingerps_driver.errors import FingerpsDriverError
-from fingerps_driver.simulation import Reflectance, RigConfig, Scene, SimulatedRig
+from fingerps_driver.simulation import (
+    FingertipShape,
+    MirrorSphere,
+    PinholeCamera,
+    Reflectance,
+    RigConfig,
+    Scene,
+    SensorModel,
+    SimulatedRig,
+    SkinReflectance,
+)
 from fingerps_ros.log import Log
 
 FALLBACK_SOURCE = "the simulated rig's true intrinsics"
+_RIG = RigConfig()
 
 
 class CameraBackend(Enum):
@@ -43,15 +54,16 @@ class CameraBackend(Enum):
 class SimSettings:
     """The simulated rig's parameters (``sim.*``).
 
-    ``finger`` holds the RigConfig fields of the finger's identity and pose; ``motion_px``
-    and ``motion_bursts`` the finger's motion during a burst (see ``RigRenderer``).
+    ``finger`` holds the ``FingertipShape`` fields of the finger's identity and pose;
+    ``motion_px`` and ``motion_bursts`` the finger's motion during a burst (see
+    ``RigRenderer``).
     """
 
     scene: Scene = Scene.FINGER
-    reflectance: Reflectance = Reflectance.HK
-    bit_depth: int = 8
+    reflectance: Reflectance = _RIG.skin.model
+    bit_depth: int = _RIG.sensor.bit_depth
     seed: int = 0
-    sphere_center_optical_m: tuple[float, ...] = RigConfig().sphere_center_optical_m
+    sphere_center_optical_m: tuple[float, ...] = _RIG.sphere.center_optical_m
     finger: Mapping[str, Any] = field(default_factory=dict)
     motion_px: tuple[float, float] = (0.0, 0.0)
     motion_bursts: int = 0
@@ -137,11 +149,15 @@ class RigRenderer:
 
     def moved_sphere(self, center: Sequence[float]) -> SimulatedRig:
         """The rig with the calibration sphere at ``center`` (metres, optical frame)."""
-        return SimulatedRig(replace(self.rig.config, sphere_center_optical_m=tuple(center)))
+        config = self.rig.config
+        return SimulatedRig(replace(
+            config, sphere=replace(config.sphere, center_optical_m=tuple(center))))
 
     def posed_finger(self, finger: Mapping[str, Any]) -> SimulatedRig:
-        """The rig with the finger of ``finger`` (RigConfig fields), warmed up if shown."""
-        rig = SimulatedRig(replace(self.rig.config, **finger))
+        """The rig with the finger of ``finger`` (``FingertipShape`` fields), warmed up if
+        shown."""
+        config = self.rig.config
+        rig = SimulatedRig(replace(config, finger=replace(config.finger, **finger)))
         if self.scene is Scene.FINGER:
             rig.warm_up((Scene.FINGER,))
         return rig
@@ -165,8 +181,8 @@ def make_camera(settings: CameraSettings, lit_leds: Callable[[], Sequence[int]],
     if settings.backend is CameraBackend.SIM:
         renderer = _make_renderer(settings, emulated=emulated)
         config = renderer.rig.config
-        camera = SimulatedCamera(renderer.render, lit_leds, width=config.width,
-                                 height=config.height, encoding=settings.sim.encoding)
+        camera = SimulatedCamera(renderer.render, lit_leds, width=config.camera.width,
+                                 height=config.camera.height, encoding=settings.sim.encoding)
         return camera, renderer
     if settings.backend is CameraBackend.FOLDER:
         if not settings.folder:
@@ -190,9 +206,10 @@ def _make_renderer(settings: CameraSettings, *, emulated: bool) -> RigRenderer:
             f"{sim.bit_depth} ({encoding}); leave camera_pixel_format empty or change "
             "sim.bit_depth")
     size = {"width": settings.width, "height": settings.height} if settings.width else {}
-    config = RigConfig(reflectance=sim.reflectance, bit_depth=sim.bit_depth, **size,
-                       sphere_center_optical_m=tuple(sim.sphere_center_optical_m),
-                       **sim.finger)
+    config = RigConfig(camera=PinholeCamera(**size), sensor=SensorModel(bit_depth=sim.bit_depth),
+                       skin=SkinReflectance(model=sim.reflectance),
+                       finger=FingertipShape(**sim.finger),
+                       sphere=MirrorSphere(center_optical_m=tuple(sim.sphere_center_optical_m)))
     rig = SimulatedRig(config)
     if rig.led_count != settings.led_count:
         raise FingerpsDriverError(

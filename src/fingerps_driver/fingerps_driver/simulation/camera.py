@@ -11,10 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+_WIDTH_PX = 659
+_HEIGHT_PX = 493
+_FOCAL_PX = 3000.0  # 30 um a pixel at the 90 mm working distance
+
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """Ideal pinhole camera without distortion.
+    """Ideal pinhole camera without distortion; the defaults are the rig's camera.
 
     Attributes
     ----------
@@ -22,16 +26,30 @@ class PinholeCamera:
         Image size in pixels.
     fx, fy : float
         Focal lengths in pixels.
-    cx, cy : float
-        Principal point in pixels (column, row; pixel centres at integers).
+    principal_point_px : (float, float) or None
+        Principal point (cx, cy) in pixels (column, row; pixel centres at integers); None
+        for the image centre ((width - 1) / 2, (height - 1) / 2).
     """
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    width: int = _WIDTH_PX
+    height: int = _HEIGHT_PX
+    fx: float = _FOCAL_PX
+    fy: float = _FOCAL_PX
+    principal_point_px: tuple[float, float] | None = None
+
+    @property
+    def cx(self) -> float:
+        """Principal point's column, pixels."""
+        if self.principal_point_px is None:
+            return (self.width - 1) / 2.0
+        return float(self.principal_point_px[0])
+
+    @property
+    def cy(self) -> float:
+        """Principal point's row, pixels."""
+        if self.principal_point_px is None:
+            return (self.height - 1) / 2.0
+        return float(self.principal_point_px[1])
 
     @property
     def matrix(self) -> np.ndarray:

@@ -20,20 +20,19 @@ margins: distorted concentric ellipses (a whorl, optionally a one-armed spiral) 
 near the apex, warped by a low-frequency sinusoidal displacement. The ridge amplitude fades
 out within ~``core_radius`` of the core, where the phase is singular.
 
-A synthetic fingerprint (``relief``, a ``fingerprint_relief.RidgeRelief``) replaces the whorl
-when given: the displacement is 0.5 * ``ridge_height_m`` * its value at the point's skin
-coordinates (``skin_coordinates``), so its ridges are raised towards the camera. Skin
-coordinates use the finger's symmetry: the cap is an ellipsoid of revolution and every
-cross-section of the shaft a circle of radius R about the (bent) finger axis, so a point is
-(theta, dY), its azimuth about the axis (theta = 0 facing the camera, + towards +x) and its
-position along it. Its skin x is -rho(dY) * theta (arc length along the cross-section
-circle of radius rho; exactly R * theta on the shaft; the sign: Mirroring, below), its skin
-y the arc length along the meridian from the apex's cross-section (on the cap an
-incomplete elliptic integral of the second kind, on the bent shaft the arc length of the
-parabola). Both are exact distances along the coordinate lines;
-the cap and the bent shaft are not developable, so no flat map keeps all distances (the
-coordinate lines meet at right angles on the cap, and within ~atan(slope_x * slope_y) of
-them on the shaft).
+A synthetic fingerprint (``identity``, its ``relief`` a ``fingerprint_relief.RidgeRelief``)
+replaces the whorl when given: the displacement is 0.5 * ``ridge_height_m`` * its value at
+the point's skin coordinates (``skin_coordinates``), so its ridges are raised towards the
+camera. Skin coordinates use the finger's symmetry: the cap is an ellipsoid of revolution
+and every cross-section of the shaft a circle of radius R about the (bent) finger axis, so a
+point is (theta, dY), its azimuth about the axis (theta = 0 facing the camera, + towards +x)
+and its position along it. Its skin x is -rho(dY) * theta (arc length along the
+cross-section circle of radius rho; exactly R * theta on the shaft; the sign: Mirroring,
+below), its skin y the arc length along the meridian from the apex's cross-section (on the
+cap an incomplete elliptic integral of the second kind, on the bent shaft the arc length of
+the parabola). Both are exact distances along the coordinate lines; the cap and the bent
+shaft are not developable, so no flat map keeps all distances (the coordinate lines meet at
+right angles on the cap, and within ~atan(slope_x * slope_y) of them on the shaft).
 
 Mirroring: skin x runs towards -x of the image, so the skin seen by the camera carries the
 pattern mirrored left-right. The pattern is the finger's rolled print (its ground truth),
@@ -53,18 +52,20 @@ camera), also exactly: ``trace_fingertip`` traces the camera's rays in the finge
 (the camera centre moved, the rays turned; the height field is unchanged) and turns the hits
 and normals back. The apex position is the shift.
 
-Normals are from central differences of the full height field (step 0.25 um: truncation and
-round-off far below 1e-5 rad), so they are exact for the surface the renderer sees.
+Normals are from central differences of the full height field (step 0.25 um: truncation
+below 2e-5 rad, at its largest where the ridges are steepest in the image, and round-off
+below 1e-9 rad), so they are those of the surface the renderer sees.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import special
 
-from fingerps_driver.simulation.fingerprint_relief import RidgeRelief
+from fingerps_driver.simulation.fingerprint_relief import RidgeRelief, relief_for_identity
 from fingerps_recon.photometric.frames import optical_to_ps, ps_to_optical
 
 _WARP_WAVELENGTHS_M = (9.0e-3, 13.0e-3)
@@ -73,16 +74,19 @@ _ALBEDO_WAVELENGTHS_M = (1.5e-3, 8.0e-3)
 _FD_STEP_M = 0.25e-6
 _NEWTON_TOLERANCE_M = 1e-12
 _NEWTON_MAX_ITER = 60
+_CORE_RADIUS_PERIODS = 0.7
 
 
 @dataclass(frozen=True)
 class FingertipShape:
-    """Parameters of the synthetic fingertip (see the module docstring).
+    """Parameters of the synthetic fingertip (see the module docstring); the defaults are the
+    rig's standard finger: the analytic whorl, 90 mm from the camera, no pose.
 
     Attributes
     ----------
     apex_optical_m : (3,) float
-        Apex position, optical frame.
+        Apex position, optical frame: the point nearest the camera; its z is the working
+        distance.
     radius_m : float
         Radius R of the cap and the cylinder.
     tip_elongation : float
@@ -92,7 +96,8 @@ class FingertipShape:
     length_radius_m : float
         Radius of the bend along the finger, away from the camera.
     ridge_height_m, ridge_period_m : float
-        Ridge peak-to-valley height and period on the skin.
+        Ridge peak-to-valley height and period on the skin (the height also that of a
+        fingerprint's relief).
     core_offset_m : (2,) float
         Whorl core in unrolled coordinates (U, V) relative to the apex.
     ridge_ellipticity : float
@@ -101,42 +106,55 @@ class FingertipShape:
         Amplitude of the low-frequency warp of the ridge coordinates.
     spiral : bool
         One-armed spiral whorl (True) or closed concentric ellipses (False).
-    core_radius_m : float
-        Radius over which the ridge amplitude fades out at the core.
     albedo_mean, albedo_variation : float
         Mean albedo and the relative standard deviation of its smooth variation.
     seed : int
-        Seed of the warp phases and the albedo pattern.
+        Seed of the warp phases (``seed``) and the albedo pattern (``seed + 1``).
+    identity : int or None
+        None for the whorl, or the seed of the synthetic fingerprint carried instead
+        (``fingerprint_relief.relief_for_identity``, its own period map). The fingerprint is
+        20 mm wide (+-72 deg about an 8 mm finger) and the standard finger shows +-65 deg of
+        it: beyond ~7 deg of roll one margin shows skin past the print's edge, where the
+        relief fades to flat skin.
     roll_deg : float
-        Rotation about the finger's own axis (see the module docstring).
+        Rotation about the finger's own axis, within +-45 deg (see the module docstring).
     yaw_deg : float
         Rotation of the whole finger about the optical axis through the apex, from +x
-        towards +y.
+        towards +y (clockwise as displayed), within +-90 deg.
     pitch_deg : float
-        Then about the optical x axis through the apex, from +y towards +z.
-    relief : RidgeRelief or None
-        Synthetic fingerprint carried instead of the whorl (None: the whorl).
+        Then about the optical x axis through the apex, from +y towards +z (+ brings the tip
+        towards the camera), within +-15 deg: beyond, the tip's or the shaft's margin comes
+        within a few degrees of grazing.
     """
 
-    apex_optical_m: tuple[float, float, float]
-    radius_m: float
-    tip_elongation: float
-    max_slope_deg: float
-    length_radius_m: float
-    ridge_height_m: float
-    ridge_period_m: float
-    core_offset_m: tuple[float, float]
-    ridge_ellipticity: float
-    warp_amplitude_m: float
-    spiral: bool
-    core_radius_m: float
-    albedo_mean: float
-    albedo_variation: float
-    seed: int
+    apex_optical_m: tuple[float, float, float] = (0.0, 2.5e-3, 0.090)
+    radius_m: float = 8e-3
+    tip_elongation: float = 1.15
+    max_slope_deg: float = 65.0
+    length_radius_m: float = 25e-3
+    ridge_height_m: float = 50e-6
+    ridge_period_m: float = 0.5e-3
+    core_offset_m: tuple[float, float] = (0.6e-3, -1.0e-3)
+    ridge_ellipticity: float = 1.1
+    warp_amplitude_m: float = 0.25e-3
+    spiral: bool = True
+    albedo_mean: float = 0.5
+    albedo_variation: float = 0.06
+    seed: int = 0
+    identity: int | None = None
     roll_deg: float = 0.0
     yaw_deg: float = 0.0
     pitch_deg: float = 0.0
-    relief: RidgeRelief | None = None
+
+    @property
+    def core_radius_m(self) -> float:
+        """Radius over which the whorl's ridge amplitude fades out at the core."""
+        return _CORE_RADIUS_PERIODS * self.ridge_period_m
+
+    @functools.cached_property
+    def relief(self) -> RidgeRelief | None:
+        """The synthetic fingerprint of ``identity`` (None: the whorl), cached per identity."""
+        return None if self.identity is None else relief_for_identity(self.identity)
 
     def pitch_matrix(self) -> np.ndarray:
         """(3, 3) rotation, optical frame <- finger frame, about the x axis (``pitch_deg``)."""

@@ -17,6 +17,9 @@ throughout the simulation, consistently for diffuse and specular terms).
 Seen in a mirror, the LED is a flat disc of radius ``disc_radius_m`` facing along its axis.
 Its radiance in the same units is power_k * (d_ref / r_disc)**2 * cos**(m_k - 1) theta inside
 the disc, with a soft rim (tanh profile of width ``rim_fraction * r_disc``).
+
+``LedLayout`` is the rig's LEDs as configured (ring angles, radii, heights, lobes, aims);
+``LedLayout.ring`` places them about the scene's apex as a ``LedRing``.
 """
 
 from __future__ import annotations
@@ -115,3 +118,65 @@ class LedRing:
         lobe = np.maximum(facing, 0.0) ** (self.exponents[k] - 1.0)
         peak = self.powers[k] * (self.reference_distance_m / self.disc_radius_m) ** 2
         return np.where(hit, peak * lobe * profile, 0.0)
+
+
+@dataclass(frozen=True)
+class LedLayout:
+    """Where the rig's LEDs sit and how they emit, one entry per LED in index order.
+
+    The defaults are the standard rig: seven LEDs on a ring of ~40 mm radius in the lens
+    plane, a little irregular in angle, radius, height, power and lobe, as built.
+
+    Attributes
+    ----------
+    angles_deg : tuple of float
+        Azimuth on the ring in the optical x-y plane, from +x towards +y (clockwise as the
+        image is displayed).
+    ring_radii_m : tuple of float
+        Distance from the optical axis.
+    heights_m : tuple of float
+        z of each LED (the lens plane is z = 0).
+    powers : tuple of float
+        Relative on-axis intensity.
+    exponents : tuple of float
+        m of the cos^m emission lobe.
+    aim_offsets_m : tuple of (float, float)
+        (x, y) offset from the apex of the point each LED's axis passes through (so the
+        lobes are a little off the scene centre).
+    disc_radius_m : float
+        Radius of each LED's emitting disc as seen in the mirror sphere.
+    """
+
+    angles_deg: tuple[float, ...] = (8.0, 57.0, 110.0, 160.0, 209.0, 262.0, 313.0)
+    ring_radii_m: tuple[float, ...] = (
+        40.0e-3, 38.5e-3, 41.5e-3, 39.0e-3, 42.0e-3, 37.5e-3, 40.5e-3,
+    )
+    heights_m: tuple[float, ...] = (1.0e-3, -1.5e-3, 0.5e-3, 2.0e-3, -0.5e-3, 1.5e-3, -2.0e-3)
+    powers: tuple[float, ...] = (1.00, 0.93, 1.06, 0.88, 0.97, 1.04, 0.91)
+    exponents: tuple[float, ...] = (4.5, 5.0, 3.8, 5.5, 4.2, 4.8, 3.5)
+    aim_offsets_m: tuple[tuple[float, float], ...] = (
+        (3.0e-3, -2.0e-3), (-2.5e-3, 3.0e-3), (4.0e-3, 1.0e-3), (-3.0e-3, -3.5e-3),
+        (1.5e-3, 4.0e-3), (-4.0e-3, 0.5e-3), (2.5e-3, -3.0e-3),
+    )
+    disc_radius_m: float = 1.5e-3
+
+    def ring(self, apex_optical_m: tuple[float, float, float]) -> LedRing:
+        """The LEDs aimed about ``apex_optical_m`` (metres, optical frame), whose depth is
+        the reference distance of their irradiance."""
+        angles = np.deg2rad(np.asarray(self.angles_deg, dtype=np.float64))
+        radii = np.asarray(self.ring_radii_m, dtype=np.float64)
+        positions = np.stack(
+            [radii * np.cos(angles), radii * np.sin(angles), np.asarray(self.heights_m)],
+            axis=-1,
+        )
+        apex = np.asarray(apex_optical_m, dtype=np.float64)
+        offsets = np.asarray(self.aim_offsets_m, dtype=np.float64)
+        aims = apex + np.concatenate([offsets, np.zeros((len(offsets), 1))], axis=-1)
+        return LedRing(
+            positions_optical=positions,
+            axes_optical=aims - positions,
+            powers=np.asarray(self.powers),
+            exponents=np.asarray(self.exponents),
+            reference_distance_m=float(apex_optical_m[2]),
+            disc_radius_m=self.disc_radius_m,
+        )

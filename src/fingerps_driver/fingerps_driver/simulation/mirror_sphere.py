@@ -29,7 +29,8 @@ _BISECTION_STEPS = 80
 
 @dataclass(frozen=True)
 class MirrorSphere:
-    """A ball with a mirror finish and a weak diffuse part.
+    """A ball with a mirror finish and a weak diffuse part, and how it is imaged; the
+    defaults are the rig's 4 mm steel ball.
 
     Attributes
     ----------
@@ -41,12 +42,18 @@ class MirrorSphere:
         Albedo of the Lambertian part.
     specular_reflectance : float
         Mirror reflectance (steel ~0.6).
+    supersample : int
+        Sub-pixel samples per pixel axis for the coverage of silhouette pixels.
+    psf_sigma_px : float
+        Lens blur of the specular highlight: standard deviation of a Gaussian, pixels.
     """
 
-    center_optical_m: tuple[float, float, float]
-    radius_m: float
-    diffuse_albedo: float
-    specular_reflectance: float
+    center_optical_m: tuple[float, float, float] = (2.0e-3, -1.5e-3, 0.094)
+    radius_m: float = 4e-3
+    diffuse_albedo: float = 0.08
+    specular_reflectance: float = 0.6
+    supersample: int = 4
+    psf_sigma_px: float = 1.0
 
     def intersect(self, rays_optical: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """First intersection of rays from the camera centre with the sphere.
@@ -171,17 +178,15 @@ def render_sphere(
     k: int,
     *,
     diffuse_shading: Callable[..., np.ndarray],
-    supersample: int,
-    psf_sigma_px: float,
 ) -> np.ndarray:
     """Noiseless radiance image of the sphere under LED ``k``.
 
     The diffuse part is shaded at each pixel centre's ray (at the limb point nearest the
     ray where the centre misses the sphere) and weighted by the pixel's coverage, measured
-    on ``supersample`` x ``supersample`` sub-pixel rays: an anti-aliased silhouette. The
-    specular part is ray-traced on 8 x 8 sub-pixel rays in a window around the mirror point
-    of the LED's centre (outside it the disc's image is zero to ~1e-8), then blurred by the
-    lens PSF.
+    on ``sphere.supersample`` x ``sphere.supersample`` sub-pixel rays: an anti-aliased
+    silhouette. The specular part is ray-traced on 8 x 8 sub-pixel rays in a window around
+    the mirror point of the LED's centre (outside it the disc's image is zero to ~1e-8),
+    then blurred by the lens PSF (``sphere.psf_sigma_px``).
 
     Parameters
     ----------
@@ -190,10 +195,6 @@ def render_sphere(
         LED index.
     diffuse_shading : callable
         ``lambertian_shading(normals_ps, lights_ps, *, rho)`` of ``fingerps_recon``.
-    supersample : int
-        Sub-pixel samples per axis for the coverage of silhouette pixels.
-    psf_sigma_px : float
-        Standard deviation of the Gaussian blur of the specular part, pixels.
 
     Returns
     -------
@@ -203,7 +204,8 @@ def render_sphere(
     image = np.zeros((camera.height, camera.width))
     rows, cols = sphere.pixel_window(camera)
     if rows[1] > rows[0] and cols[1] > cols[0]:
-        coverage = sphere.coverage(camera, rows=rows, cols=cols, supersample=supersample)
+        coverage = sphere.coverage(camera, rows=rows, cols=cols,
+                                   supersample=sphere.supersample)
         points, normals = sphere.nearest_points(camera.pixel_rays(rows=rows, cols=cols))
         lights = leds.directions_optical(points, k)
         diffuse = leds.irradiance(points, k) * diffuse_shading(
@@ -211,7 +213,7 @@ def render_sphere(
         )
         image[rows[0] : rows[1], cols[0] : cols[1]] = coverage * diffuse
     if sphere.specular_reflectance > 0.0:
-        _add_highlight(image, sphere, camera, leds, k, psf_sigma_px=psf_sigma_px)
+        _add_highlight(image, sphere, camera, leds, k)
     return image
 
 
@@ -221,8 +223,6 @@ def _add_highlight(
     camera: PinholeCamera,
     leds: LedRing,
     k: int,
-    *,
-    psf_sigma_px: float,
 ) -> None:
     """Add LED ``k``'s blurred specular highlight to ``image`` (H, W) in place."""
     led = leds.positions_optical[k]
@@ -234,6 +234,7 @@ def _add_highlight(
         leds.disc_radius_m * sphere.radius_m / (2.0 * led_distance) * camera.fx / mirror_point[2]
     )
     half = int(np.ceil(3.0 * image_radius_px + 2.0))
+    psf_sigma_px = sphere.psf_sigma_px
     pad = int(np.ceil(4.0 * psf_sigma_px)) + 1
     r0, r1 = int(np.floor(v)) - half, int(np.floor(v)) + half + 2
     c0, c1 = int(np.floor(u)) - half, int(np.floor(u)) + half + 2

@@ -42,7 +42,7 @@ def standard_normal(shape: tuple[int, ...], *, rng: np.random.Generator) -> np.n
 
 @dataclass(frozen=True)
 class SensorModel:
-    """Noise and quantisation of the camera.
+    """Exposure, noise and quantisation of the camera; the defaults are the rig's sensor.
 
     Attributes
     ----------
@@ -54,12 +54,16 @@ class SensorModel:
         Read noise, electrons rms.
     ambient_fraction : float
         Ambient light plus dark current in every frame, fraction of full scale.
+    exposure_gain : float
+        Fraction of full scale per unit radiance of the finger and the sphere; the default
+        puts the brightest finger pixels under the brightest LED at ~80 % of full scale.
     """
 
-    bit_depth: int
-    full_well_e: float
-    read_noise_e: float
-    ambient_fraction: float
+    bit_depth: int = 8
+    full_well_e: float = 10000.0
+    read_noise_e: float = 10.0
+    ambient_fraction: float = 0.002
+    exposure_gain: float = 1.3
 
     @property
     def max_value(self) -> int:

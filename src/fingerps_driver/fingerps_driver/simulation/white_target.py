@@ -22,7 +22,7 @@ _TEXTURE_SIGMA_PX = 1.2
 
 @dataclass(frozen=True)
 class WhiteTarget:
-    """Flat white target.
+    """Flat white target; the defaults are the rig's.
 
     Attributes
     ----------
@@ -34,12 +34,17 @@ class WhiteTarget:
         Relative standard deviation of the paper texture.
     seed : int
         Seed of the texture.
+    exposure_gain : float
+        Fraction of full scale per unit radiance: the target is imaged with a shorter
+        exposure than the finger, as a real flat-field calibration would be, so that it
+        peaks at ~90 % of full scale instead of saturating.
     """
 
-    distance_m: float
-    albedo: float
-    texture_amplitude: float
-    seed: int
+    distance_m: float = 0.090
+    albedo: float = 0.9
+    texture_amplitude: float = 0.01
+    seed: int = 2
+    exposure_gain: float = 1.07
 
     def albedo_map(self, height: int, width: int) -> np.ndarray:
         """(height, width) float64 albedo of the target seen through each pixel."""
