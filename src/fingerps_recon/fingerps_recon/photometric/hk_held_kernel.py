@@ -20,16 +20,8 @@ from fingerps_recon.photometric.hk_model_kernel import (
     model_sums,
     view_terms,
 )
-from fingerps_recon.photometric.hk_step_kernel import (
-    finish_chunk,
-    fit_rho,
-    keep_better,
-    steps,
-    trial_state,
-)
 from fingerps_recon.photometric.kernel_compile import (
     drop_stale_caches,
-    inlined_modules,
     parallel_kernel,
     serial_kernel,
 )
@@ -55,7 +47,7 @@ def solve_held(cand, index, images, usable, normals_in, albedo_in, terms, views,
     """The whole solve at a known A = ``scale`` (float64), chunk by chunk: with A held, the
     pixels do not depend on each other, so each chunk is gathered (:func:`gather_chunk`,
     arguments as :func:`photometric.hk_gather_kernel.gather`), solved and written out
-    (:func:`finish_chunk`) while its measurements and state stay in the core's cache --
+    (:func:`hk_step_kernel.finish_chunk`) while its measurements and state stay in the core's cache --
     one pass over the burst instead of two per iteration. The same steps as the passes
     with A fixed: rho in closed form at the initial normals, then up to ``iterations``
     Levenberg–Marquardt iterations (damping from ``lam_start``), each pixel keeping the
@@ -90,9 +82,9 @@ def solve_held(cand, index, images, usable, normals_in, albedo_in, terms, views,
                                     0, solved, counts)
         view_terms(n, v, 0, consts, scr)
         linear_rows(n, meas, 0, neg_tau, consts, scr, rows)
-        fit_rho(0, rows, scale, rho)
+        hk_step_kernel.fit_rho(0, rows, scale, rho)
         model_sums(n, rho, 0, a, a_tau, neg_tau, meas, consts, scr, acc, sums)
-        steps(0, sums, lam, consts, delta0, w)
+        hk_step_kernel.steps(0, sums, lam, consts, delta0, w)
         cost = 0.0
         for i in range(CHUNK):
             cost += float(sums[14, i])
@@ -100,13 +92,13 @@ def solve_held(cand, index, images, usable, normals_in, albedo_in, terms, views,
         done = 0
         while done < iterations and _predicted_decrease(sums, delta0) > tol * cost:
             done += 1
-            trial_state(0, n, rho, delta0, w, f32(0.0), n_new, rho_new)
+            hk_step_kernel.trial_state(0, n, rho, delta0, w, f32(0.0), n_new, rho_new)
             view_terms(n_new, v, 0, consts, scr)
             model_sums(n_new, rho_new, 0, a, a_tau, neg_tau, meas, consts, scr, acc,
                        sums_new)
-            keep_better(0, 0.0, 0.0, consts, sums, sums_new, n, n_new, rho, rho_new, lam,
-                        scr, chosen)
-            steps(0, sums, lam, consts, delta0, w)
+            hk_step_kernel.keep_better(0, 0.0, 0.0, consts, sums, sums_new, n, n_new, rho,
+                                       rho_new, lam, scr, chosen)
+            hk_step_kernel.steps(0, sums, lam, consts, delta0, w)
             cost = 0.0
             for i in range(CHUNK):
                 cost += chosen[i]
@@ -125,12 +117,11 @@ def solve_held(cand, index, images, usable, normals_in, albedo_in, terms, views,
                 den += pp - pc * pc / cc
         parts[chunk, 3] = num
         parts[chunk, 4] = den
-        finish_chunk(cand, solved, chunk * CHUNK, n, rho, sums, 0, counts, normals, albedo,
-                     rms, valid)
+        hk_step_kernel.finish_chunk(cand, solved, chunk * CHUNK, n, rho, sums, 0, counts,
+                                    normals, albedo, rms, valid)
 
 
 # The kernels here compile the helpers they call with what those inline (the steps'
 # adjugate: photometric.symmetric_solve); after an edit of any of those modules, or of the
 # compile options, the cached kernels are compiled anew.
-_COMPILED_FROM = inlined_modules({**vars(hk_step_kernel), **globals()})
-drop_stale_caches(globals(), _COMPILED_FROM)
+drop_stale_caches(globals())

@@ -24,16 +24,8 @@ from fingerps_recon.photometric.hk_model_kernel import (
     model_sums,
     view_terms,
 )
-from fingerps_recon.photometric.hk_step_kernel import (
-    finish_chunk,
-    fit_rho,
-    keep_better,
-    steps,
-    trial_state,
-)
 from fingerps_recon.photometric.kernel_compile import (
     drop_stale_caches,
-    inlined_modules,
     parallel_kernel,
     serial_kernel,
 )
@@ -93,10 +85,10 @@ def start(n, rho, lam, rows, scale, a_tau, neg_tau, meas, views, consts, sums, d
         view_terms(n, views, j0, consts, scr)
         if not rows_given:
             linear_rows(n, meas, chunk, neg_tau, consts, scr, rows)
-        fit_rho(j0, rows, scale, rho)
+        hk_step_kernel.fit_rho(j0, rows, scale, rho)
         model_sums(n, rho, chunk, a, a_tau, neg_tau, meas, consts, scr,
                    np.empty(N_SUMS * CHUNK, np.float32), sums)
-        steps(j0, sums, lam, consts, delta0, w)
+        hk_step_kernel.steps(j0, sums, lam, consts, delta0, w)
         _step_parts(j0, sums, delta0, w, parts, chunk)
         cost = 0.0
         for i in range(CHUNK):
@@ -116,7 +108,7 @@ def candidate(n, rho, delta0, w, scale, trial, a_tau, neg_tau, meas, views, cons
     for chunk in prange(parts.shape[0]):
         j0 = chunk * CHUNK
         scr = np.empty(SCRATCH, np.float32)
-        trial_state(j0, n, rho, delta0, w, d32, n_new, rho_new)
+        hk_step_kernel.trial_state(j0, n, rho, delta0, w, d32, n_new, rho_new)
         view_terms(n_new, views, j0, consts, scr)
         model_sums(n_new, rho_new, chunk, a, a_tau, neg_tau, meas, consts, scr,
                    np.empty(N_SUMS * CHUNK, np.float32), sums_new)
@@ -151,9 +143,9 @@ def commit(n, rho, lam, scale, trial, at, consts, sums, n_new, rho_new, sums_new
         j0 = chunk * CHUNK
         scr = np.empty(SCRATCH, np.float32)
         chosen = np.empty(CHUNK)  # the chosen states' costs at A = at, float64
-        keep_better(j0, d_old, d_new, consts, sums, sums_new, n, n_new, rho, rho_new, lam,
-                    scr, chosen)
-        steps(j0, sums, lam, consts, delta0, w)
+        hk_step_kernel.keep_better(j0, d_old, d_new, consts, sums, sums_new, n, n_new, rho,
+                                   rho_new, lam, scr, chosen)
+        hk_step_kernel.steps(j0, sums, lam, consts, delta0, w)
         _step_parts(j0, sums, delta0, w, parts, chunk)
         cost = 0.0
         for i in range(CHUNK):
@@ -164,14 +156,14 @@ def commit(n, rho, lam, scale, trial, at, consts, sums, n_new, rho_new, sums_new
 @parallel_kernel
 def finish(pix, solved, n, rho, sums, counts, normals, albedo, rms, valid):
     """The result images (flat (H*W,), zeros where not valid) from the state of every chunk
-    (:func:`finish_chunk`)."""
+    (:func:`hk_step_kernel.finish_chunk`)."""
     for chunk in prange((pix.shape[0] + CHUNK - 1) // CHUNK):
         j0 = chunk * CHUNK
-        finish_chunk(pix, solved, j0, n, rho, sums, j0, counts, normals, albedo, rms, valid)
+        hk_step_kernel.finish_chunk(pix, solved, j0, n, rho, sums, j0, counts, normals, albedo,
+                                    rms, valid)
 
 
 # The kernels here compile the helpers they call with what those inline (the steps'
 # adjugate: photometric.symmetric_solve); after an edit of any of those modules, or of the
 # compile options, the cached kernels are compiled anew.
-_COMPILED_FROM = inlined_modules({**vars(hk_step_kernel), **globals()})
-drop_stale_caches(globals(), _COMPILED_FROM)
+drop_stale_caches(globals())

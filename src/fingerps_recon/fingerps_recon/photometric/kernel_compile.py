@@ -25,6 +25,7 @@ import numba
 # Imported for its effect: idle kernel threads sleep (set before numba's first parallel launch).
 import fingerps_recon.photometric.kernel_threads  # noqa: F401
 
+_PACKAGE = "fingerps_recon."  # the modules whose kernels may be compiled in
 _OPTIONS = {"fastmath": {"contract"}, "error_model": "numpy", "nogil": True}
 
 
@@ -57,13 +58,24 @@ def inline_kernel(fn: Callable) -> Callable:
 
 def inlined_modules(kernels: dict[str, object]) -> list[ModuleType]:
     """The modules, other than the one of ``kernels`` (a module's ``globals()``), whose
-    functions it compiles (``inline_kernel(imported_function)``), and this one (the
-    compile options)."""
+    functions its kernels may compile in: those of the compiled functions it names, or of
+    the project's modules it names (``module.function`` in a kernel), and in turn theirs;
+    and this one (the compile options)."""
     own = kernels.get("__name__")
-    names = {getattr(getattr(kernel, "py_func", None), "__module__", own)
-             for kernel in kernels.values() if isinstance(kernel, numba.core.dispatcher.Dispatcher)}
-    names = (names | {__name__}) - {own}
-    return [sys.modules[name] for name in sorted(names) if name in sys.modules]
+    found: set[str] = set()
+    spaces = [kernels]
+    while spaces:
+        for value in list(spaces.pop().values()):
+            if isinstance(value, numba.core.dispatcher.Dispatcher):
+                name = getattr(value.py_func, "__module__", own)
+            elif isinstance(value, ModuleType) and value.__name__.startswith(_PACKAGE):
+                name = value.__name__
+            else:
+                continue
+            if name not in found and name != own and name in sys.modules:
+                found.add(name)
+                spaces.append(vars(sys.modules[name]))
+    return [sys.modules[name] for name in sorted(found | {__name__}) if name in sys.modules]
 
 
 def drop_stale_caches(kernels: dict[str, object],
