@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_recon_speed import _burst, _node_calibration
 
 from fingerps_driver.simulation import RigConfig, Scene, SimulatedRig
-from fingerps_recon.photometric import hk_held_kernel
+from fingerps_recon.photometric import hk_passes_kernel
 from fingerps_recon.photometric.pipeline import (
     Model,
     ReconstructionOptions,
@@ -68,18 +68,18 @@ def run() -> dict[str, float]:
         figures[f"recon.hk_iter.mae_deg.held_{count}"] = float(np.mean(errors))
     # The defaults, and the iterations each chunk did (solve_held's per-chunk parts).
     done: list[np.ndarray] = []
-    kernel = hk_held_kernel.solve_held
+    kernel = hk_passes_kernel.solve_held
 
     def counting(*args: object) -> None:
         kernel(*args)
         done.append(np.asarray(args[-1])[:, 2].copy())
 
-    hk_held_kernel.solve_held = counting
+    hk_passes_kernel.solve_held = counting
     try:
         errors = [_mae_deg(r.normals_ps, truth, r.mask)
                   for r in (solve(b, held) for b in bursts[1:])]
     finally:
-        hk_held_kernel.solve_held = kernel
+        hk_passes_kernel.solve_held = kernel
     iterations = np.concatenate(done)
     figures["recon.hk_iter.mae_deg.held_default"] = float(np.mean(errors))
     figures["recon.hk_iter.held_default_iterations_max"] = float(iterations.max())

@@ -93,7 +93,7 @@ RUNS = 15
 MIN_RUNS = 7
 KERNEL_ITERATIONS = 10
 # Floating-point operations of one HK LM iteration with A held (the iteration every burst
-# after the first runs: photometric/hk_held_kernel.py solve_held), counted in the source
+# after the first runs: photometric/hk_passes_kernel.py solve_held), counted in the source
 # (add, mul, fma = 2, div, sqrt, min/max each 1; loads, stores, selects, floor and integer
 # ops not counted): per measurement (pixel x light) in model_sums (hk_model_kernel.py): c_i
 # 5, lighting selects 2, 1/c_i 1, q 2, the exponent 2 and exp() 16, e p S 3, e c_i 1, A P 1,

@@ -73,9 +73,8 @@ def test_the_kernels_recompile_after_an_edit_of_symmetric_solve(tmp_path):
 def test_the_modules_a_kernel_module_inlines_are_found_from_its_kernels():
     from fingerps_recon.photometric import (
         hk_gather_kernel,
-        hk_held_kernel,
-        hk_joint_kernel,
         hk_model_kernel,
+        hk_passes_kernel,
         hk_step_kernel,
         kernel_compile,
         lambertian_kernel,
@@ -93,7 +92,6 @@ def test_the_modules_a_kernel_module_inlines_are_found_from_its_kernels():
                                                      symmetric_solve]
     # The passes' caches follow also what the step helpers they call (hk_step_kernel.steps)
     # inline, through the module they name.
-    assert inlined_modules(vars(hk_held_kernel)) == [hk_gather_kernel, hk_model_kernel, hk_step_kernel,
-                                             kernel_compile, symmetric_solve]
-    assert inlined_modules(vars(hk_joint_kernel)) == [hk_model_kernel, hk_step_kernel, kernel_compile,
-                                              symmetric_solve]
+    assert inlined_modules(vars(hk_passes_kernel)) == [hk_gather_kernel, hk_model_kernel,
+                                                       hk_step_kernel, kernel_compile,
+                                                       symmetric_solve]

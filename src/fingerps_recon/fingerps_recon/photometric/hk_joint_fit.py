@@ -1,7 +1,7 @@
 """The HK solve with the global scale A fitted jointly with the pixels (a first burst,
 ``offline_recon``): the Levenberg–Marquardt loop of ``photometric.hk_solver``'s module
 docstring over the whole burst, A's step from the Schur complement, each iteration two
-compiled passes over the pixels (``photometric.hk_joint_kernel``)."""
+compiled passes over the pixels (``photometric.hk_passes_kernel``)."""
 
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ def fit_jointly(
 
 
 class JointPasses:
-    """The per-pixel passes of :func:`fit_jointly` (:mod:`photometric.hk_joint_kernel`), with the
+    """The per-pixel passes of :func:`fit_jointly` (:mod:`photometric.hk_passes_kernel`), with the
     state they update in place: one compiled, vectorised loop over the chunks of pixels per
     pass, in numba's threads (``numba_threads``), the global sums added up per chunk in a
     fixed order. Each pass returns its global sums: ``linear`` the numerator and

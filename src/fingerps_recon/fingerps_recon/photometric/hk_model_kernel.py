@@ -1,12 +1,12 @@
-"""The HK model of paper Eq. 4 compiled (numba) for the solver's passes (Eq. 6-7), and the
-data layout those passes share.
+"""The HK model of paper Eq. 4 compiled (numba) for the solver's passes (Eq. 6-7), and the data
+layout those passes share.
 
 Per chunk of ``CHUNK`` pixels the model of Eq. 4, its Jacobian and the 15 Gauss–Newton sums
 of every pixel are formed light by light (:func:`model_sums`) while the chunk's sums stay in
 the core's L1 cache, and nothing of size (K, N) is written; :func:`linear_rows` forms the
 per-pixel sums of the fit that is linear in A and rho. The passes that call them:
-:mod:`photometric.hk_held_kernel` (A held) and :mod:`photometric.hk_joint_kernel` (A fitted
-jointly), with the steps of :mod:`photometric.hk_step_kernel`.
+:mod:`photometric.hk_passes_kernel` (A held, and A fitted jointly), with the steps of
+:mod:`photometric.hk_step_kernel`.
 
 Layout.
 

@@ -40,7 +40,7 @@ solver on dE/dx = 0; any method reaching the same minimum serves, NOTES §2):
 A held (``scale`` given, e.g. the A a previous burst of the same rig refitted: A depends on
 the skin and the LEDs' power, not on the pose). The pixels are then independent: one
 compiled pass gathers, solves and writes out each chunk of pixels while it stays in the
-core's cache (``hk_held_kernel.solve_held``), with the same steps (rho in closed form for the
+core's cache (``hk_passes_kernel.solve_held``), with the same steps (rho in closed form for the
 held A, then Levenberg–Marquardt, each pixel keeping the better of its state and its
 candidate); a chunk stops once the decrease its next steps promise (the Gauss–Newton
 model's, at least (J^T r) . delta) is at most ``tol`` times its cost, so no iteration is
@@ -57,8 +57,8 @@ E = exp(-tau_d (1/c_i + 1/c_r)) is evaluated exactly: for the finger constants i
 could be dropped), small but not negligible at float32 precision.
 
 Arithmetic. The per-pixel passes are compiled (numba: :mod:`photometric.hk_model_kernel`
-the model and its layout, ``hk_gather_kernel``, ``hk_step_kernel``, ``hk_held_kernel``,
-``hk_joint_kernel``): each pass one loop over chunks of pixels, vectorised, in up to
+the model and its layout, ``hk_gather_kernel``, ``hk_step_kernel``,
+``hk_passes_kernel``): each pass one loop over chunks of pixels, vectorised, in up to
 :func:`fingerps_recon.photometric.kernel_threads.thread_limit` numba threads; the
 per-measurement work in float32, the per-pixel sums and state float32, A and the totals
 float64. float32 limits how closely a pixel's minimum is approached: its cost stays within
@@ -97,8 +97,7 @@ class _Kernels:
 
     model: ModuleType  # the model and the passes' layout (chunk size, rows, flags)
     gather: ModuleType  # the lighting of a calibration, a burst's pixels gathered
-    held: ModuleType  # the solve with A held
-    joint: ModuleType  # the passes of the fit with A fitted jointly
+    passes: ModuleType  # the passes: the solve with A held, the fit with A fitted jointly
 
 
 # The compiled kernels, imported once per process: [_Kernels] or [None, reason] if numba
@@ -417,14 +416,14 @@ def _solve(
     if not solved.any():
         return _nothing_valid((h, w), scale)
     _check_flags(layout, flags)
-    passes = JointPasses(kernels.joint, (meas, v_dirs), consts=kernel_consts(layout),
+    passes = JointPasses(kernels.passes, (meas, v_dirs), consts=kernel_consts(layout),
                          tau=float(lighting.params.optical_depth), n=n0, rho=rho0)
     a_scale, history, done = fit_jointly(passes, scale=start, iterations=iterations, tol=tol)
     normals = np.zeros((hw, 3), np.float32)
     albedo = np.zeros(hw, np.float32)
     rms = np.zeros(hw, np.float32)
     valid = np.zeros(hw, bool)
-    kernels.joint.finish(cand, solved, passes.n, passes.rho, passes.sums, counts, normals,
+    kernels.passes.finish(cand, solved, passes.n, passes.rho, passes.sums, counts, normals,
                          albedo, rms, valid)
     return HKResult(
         normals=normals.reshape(h, w, 3), albedo=albedo.reshape(h, w), scale=float(a_scale),
@@ -440,7 +439,7 @@ def _solve_held(
 ) -> HKResult:
     """:func:`_solve` with A held at ``scale``: the pixels are independent, so one compiled
     pass gathers, solves and writes out each chunk while it is in the core's cache
-    (:func:`photometric.hk_held_kernel.solve_held`), and A's linear fit at the solution is
+    (:func:`photometric.hk_passes_kernel.solve_held`), and A's linear fit at the solution is
     the ``refit_scale`` for the next burst."""
     hw = imgs.shape[1]
     h, w = lighting.shape
@@ -453,7 +452,7 @@ def _solve_held(
     flags = np.zeros(chunks, np.uint8)
     parts = np.zeros((chunks, 5), np.float64)
     tau = float(lighting.params.optical_depth)
-    kernels.held.solve_held(cand, lighting.index, imgs, usable, normals_in, albedo_in,
+    kernels.passes.solve_held(cand, lighting.index, imgs, usable, normals_in, albedo_in,
                             lighting.terms, lighting.views, lighting.bad, MIN_INIT_CR, scale,
                             np.float32(scale * tau), np.float32(-tau),
                             kernel_consts(kernels.model), np.float32(LAMBDA_START),

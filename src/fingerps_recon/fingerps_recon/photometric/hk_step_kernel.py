@@ -1,10 +1,9 @@
-"""The Levenberg–Marquardt steps of the HK fit (paper Eq. 6-7) on one chunk of pixels,
-compiled (numba) for the passes of :mod:`photometric.hk_held_kernel` and
-:mod:`photometric.hk_joint_kernel`: the damped Gauss–Newton steps from each pixel's sums
-(:func:`steps`, its 3x3 system solved by the adjugate), rho in closed form for a given A
-(:func:`fit_rho`), the candidate states (:func:`trial_state`), each pixel keeping the better
-of its state and its candidate (:func:`keep_better`), and the result images
-(:func:`finish_chunk`). Layout and vectorisation as :mod:`photometric.hk_model_kernel`
+"""The Levenberg–Marquardt steps of the HK fit (paper Eq. 6-7) on one chunk of pixels, compiled
+(numba) for the passes of :mod:`photometric.hk_passes_kernel`: the damped Gauss–Newton steps
+from each pixel's sums (:func:`steps`, its 3x3 system solved by the adjugate), rho in closed
+form for a given A (:func:`fit_rho`), the candidate states (:func:`trial_state`), each pixel
+keeping the better of its state and its candidate (:func:`keep_better`), and the result
+images (:func:`finish_chunk`). Layout and vectorisation as :mod:`photometric.hk_model_kernel`
 describes them."""
 
 from __future__ import annotations
