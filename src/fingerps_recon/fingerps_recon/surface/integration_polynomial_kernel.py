@@ -29,6 +29,15 @@ from fingerps_recon.surface.integration_sum_kernel import ordered_sum
 POLY_DEGREE = 5
 
 
+@inline_kernel
+def _powers(x, out):
+    """out[k] = x^k, k = 0 .. len(out) - 1, by repeated multiplication."""
+    value = 1.0
+    for k in range(out.shape[0]):
+        out[k] = value
+        value *= x
+
+
 @serial_kernel
 def poly_tables(col_powers, row_powers, pair_prefix, power_prefix, row_steps):
     """The polynomial space's tables for a box of h x w pixels (written; shapes give h, w
@@ -44,19 +53,11 @@ def poly_tables(col_powers, row_powers, pair_prefix, power_prefix, row_steps):
     half_h = max((h - 1) / 2, 1.0)
     s_powers = np.empty((w, n_powers))
     for c in range(w):
-        s = (c - (w - 1) / 2) / half_w
-        value = 1.0
-        for k in range(n_powers):
-            s_powers[c, k] = value
-            value *= s
+        _powers((c - (w - 1) / 2) / half_w, s_powers[c])
         for k in range(d + 1):
             col_powers[k, c] = s_powers[c, k]
     for r in range(h):
-        t = (r - (h - 1) / 2) / half_h
-        value = 1.0
-        for k in range(n_powers):
-            row_powers[r, k] = value
-            value *= t
+        _powers((r - (h - 1) / 2) / half_h, row_powers[r])
     pair_prefix[0, :] = 0.0
     for c in range(w - 1):
         for a in range(d):

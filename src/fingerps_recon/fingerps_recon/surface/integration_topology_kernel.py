@@ -14,7 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from fingerps_recon.photometric.kernel_compile import drop_stale_caches, serial_kernel
+from fingerps_recon.photometric.kernel_compile import (
+    drop_stale_caches,
+    inline_kernel,
+    serial_kernel,
+)
 
 
 @serial_kernel
@@ -30,6 +34,23 @@ def _find(parent, i):
     return root
 
 
+@inline_kernel
+def _first_run_ending_after(run_stop, k, last, column):
+    """The first of the runs k:last (sorted, disjoint) that ends after ``column``, or last."""
+    while k < last and run_stop[k] <= column:
+        k += 1
+    return k
+
+
+@inline_kernel
+def _first_run_starting_at(run_start, k, last, column):
+    """The first of the runs k:last (sorted, disjoint) that starts at ``column`` or after,
+    or last: the runs k ... before it are those that may overlap columns before ``column``."""
+    while k < last and run_start[k] < column:
+        k += 1
+    return k
+
+
 @serial_kernel
 def _clip_segments(src_lo, src_hi, n_seg, run_start, run_stop, first, last, dst_lo, dst_hi):
     """dst = the segments src[:n_seg] (sorted, disjoint) clipped to the runs first:last of
@@ -38,17 +59,13 @@ def _clip_segments(src_lo, src_hi, n_seg, run_start, run_stop, first, last, dst_
     k = first
     for i in range(n_seg):
         a, z = src_lo[i], src_hi[i]
-        while k < last and run_stop[k] <= a:
-            k += 1
-        j = k
-        while j < last and run_start[j] < z:
-            s = max(a, run_start[j])
-            e = min(z, run_stop[j])
+        k = _first_run_ending_after(run_stop, k, last, a)
+        for j in range(k, _first_run_starting_at(run_start, k, last, z)):
+            s, e = max(a, run_start[j]), min(z, run_stop[j])
             if s < e:
                 dst_lo[out] = s
                 dst_hi[out] = e
                 out += 1
-            j += 1
     return out
 
 
@@ -118,12 +135,9 @@ def run_topology(run_start, run_stop, row_first, w2, pair_prefix, power_prefix, 
             k = up_first
             for i in range(first, last):
                 c0, c1 = run_start[i], run_stop[i]
-                while k < up_last and run_stop[k] <= c0:
-                    k += 1
-                j = k
-                while j < up_last and run_start[j] < c1:
-                    s = max(c0, run_start[j])
-                    e = min(c1, run_stop[j])
+                k = _first_run_ending_after(run_stop, k, up_last, c0)
+                for j in range(k, _first_run_starting_at(run_start, k, up_last, c1)):
+                    s, e = max(c0, run_start[j]), min(c1, run_stop[j])
                     if s < e:
                         for p in range(n_powers):
                             powers[p] += power_prefix[e, p] - power_prefix[s, p]
@@ -134,7 +148,6 @@ def run_topology(run_start, run_stop, row_first, w2, pair_prefix, power_prefix, 
                                 parent[rb] = ra
                             else:
                                 parent[ra] = rb
-                    j += 1
             steps = row_steps[r - 1]
             for p in range(n_powers):
                 acc = along[p]
