@@ -113,7 +113,7 @@ def test_refused_light_calibration_keeps_the_one_in_force(
         ros_node: Node, start_node, spin_until, call_service, set_parameters) -> None:
     _start_driver_and_calib(ros_node, start_node)
     client = ros_node.create_client(CalibrateLights, f"{NS}/{topics.CALIBRATE_LIGHTS}")
-    request = CalibrateLights.Request(sphere_radius=SimulatedRig().config.sphere_radius_m)
+    request = CalibrateLights.Request(sphere_radius=SimulatedRig().config.sphere.radius_m)
 
     _set_scene(set_parameters, "sphere")
     good = call_service(client, request)
