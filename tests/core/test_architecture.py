@@ -36,8 +36,9 @@ ROS_EXCEPTIONS = {
 # Rooms of plain science: numpy in, numpy out, no ROS.
 SCIENCE_ROOMS = (
     "fingerps_recon.photometric", "fingerps_recon.surface", "fingerps_recon.scan",
-    "fingerps_recon.offline", "fingerps_calib.lights", "fingerps_driver.board",
-    "fingerps_driver.cameras", "fingerps_driver.capture", "fingerps_driver.simulation",
+    "fingerps_recon.offline", "fingerps_recon.records", "fingerps_calib.lights",
+    "fingerps_driver.board", "fingerps_driver.cameras", "fingerps_driver.capture",
+    "fingerps_driver.simulation",
 )
 # Plumbing a science room may import (scan.scan_settings holds the scan node's parameter
 # table): it imports neither ROS nor any fingerps module, so no ROS comes in through it.

@@ -32,6 +32,7 @@ from diligent_cases import CASES, spoil_folder
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_recon.photometric.angular_error import angular_error_deg
 from fingerps_recon.photometric.normal_map import normal_map_rgb
+from fingerps_recon.records.wsq_image import MAX_RMS_ERROR, decode_wsq
 from fingerps_recon.surface.ply import read_ply
 
 SPHERE_MAX_MEAN_DEG = 1.0   # measured 0.076 (8-bit grey), 0.0002 (16-bit colour)
@@ -130,7 +131,7 @@ def test_grey_8bit_sphere(offline_recon: Callable, tmp_path: Path) -> None:
     # No --pixel-size: no metric scale, so no 500 ppi print, and the report says why.
     fingerprint = json.loads((out / "report.json").read_text())["fingerprint"]
     assert not fingerprint["made"] and "--pixel-size" in fingerprint["reason"]
-    assert not (out / "fingerprint.png").exists()
+    assert not (out / "fingerprint.png").exists() and not (out / "fingerprint.wsq").exists()
     # Depth: the sphere's height in pixel units (no --pixel-size), zero mean over the mask.
     expected = height - height[mask].mean()
     assert np.abs(depth[mask] - expected[mask]).mean() < 0.2  # measured 0.053 px
@@ -282,6 +283,13 @@ def test_rig_finger_without_mask(offline_recon: Callable, tmp_path: Path,
     width_mm = print_image.shape[1] / 19.685
     assert 10 < width_mm < 25, width_mm  # the rig's finger is ~15 mm across, ~18 mm rolled
     assert "fingerprint.png: " in run.stdout
+
+    # The same print as a WSQ file beside it, decoded by NBIS: 500 ppi, the PNG's pixels.
+    assert report["fingerprint"]["wsq"]["made"] and "fingerprint.wsq" in report["outputs"]
+    wsq_image, ppi = decode_wsq((out / "fingerprint.wsq").read_bytes())
+    assert ppi == 500 and wsq_image.shape == print_image.shape
+    assert np.sqrt(np.mean((wsq_image.astype(np.float64) - print_image) ** 2)) < MAX_RMS_ERROR
+    assert "fingerprint.wsq: " in run.stdout
 
 
 def test_model_hk(offline_recon: Callable, tmp_path: Path,

@@ -64,6 +64,14 @@ class RolledPrintError(FingerpsReconError):
         self.reason = reason
 
 
+# --- records/ -------------------------------------------------------------------------------
+
+
+class WsqError(FingerpsReconError):
+    """A print that cannot be written as, or read from, a WSQ file; raised by
+    ``records.wsq_image``."""
+
+
 # --- scan/ ----------------------------------------------------------------------------------
 
 

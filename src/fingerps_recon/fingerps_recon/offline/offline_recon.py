@@ -30,6 +30,9 @@ Outputs in DIR:
   ridges dark on white, 500 ppi, with the resolution in the PNG's ``pHYs`` chunk
   (19 685 pixels per metre); only with --pixel-size (it needs the metric scale), and only
   when the reconstruction can be unrolled (else report.json says why)
+- ``fingerprint.wsq``  the same print as a WSQ file (`fingerps_recon.records.wsq_image`:
+  NIST's codec, 0.75 bits per pixel, 500 ppi), checked by decoding it again; beside
+  ``fingerprint.png`` whenever the codec gives the print back (else report.json says why)
 - ``cloud.ply``  one point a mask pixel in the camera optical frame (x right, y down, z away
   from the camera): x = (u - cx) s, y = (v - cy) s, z = -height, with albedo as
   ``intensity`` and the normals (optical frame)
@@ -50,7 +53,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fingerps_recon.errors import FingerpsReconError, RolledPrintError
+from fingerps_recon.errors import FingerpsReconError, RolledPrintError, WsqError
 from fingerps_recon.offline.diligent_folder import (
     DEFAULT_SHADOW_FRACTION,
     PhotometricDataset,
@@ -66,6 +69,7 @@ from fingerps_recon.photometric.pipeline import (
     ReconstructionOptions,
     reconstruct,
 )
+from fingerps_recon.records.wsq_image import WSQ_BITRATE, encode_wsq
 from fingerps_recon.surface.ply import write_ply
 from fingerps_recon.surface.png_resolution import png_with_resolution
 from fingerps_recon.surface.rolled_print import rolled_print
@@ -130,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
                                      pixel_size=args.pixel_size)
     if fingerprint["made"]:
         written.append("fingerprint.png")
+    if fingerprint.get("wsq", {}).get("made"):
+        written.append("fingerprint.wsq")
     t_write = time.perf_counter()
 
     report = {
@@ -190,7 +196,8 @@ print is unrolled: at 10 m a 5 mm deep finger changes the scale by 0.05 %."""
 
 def _write_fingerprint(path: Path, height: np.ndarray, normals: np.ndarray, mask: np.ndarray,
                        *, pixel_size: float | None) -> dict:
-    """Write the 500 ppi rolled print; return what report.json says of it."""
+    """Write the 500 ppi rolled print (PNG, and WSQ beside it when the codec gives it back);
+    return what report.json says of it."""
     if pixel_size is None:
         return {"made": False, "reason": "needs --pixel-size (metres per pixel): a 500 ppi "
                 "print needs the metric scale"}
@@ -204,9 +211,16 @@ def _write_fingerprint(path: Path, height: np.ndarray, normals: np.ndarray, mask
     except RolledPrintError as exc:
         return {"made": False, "reason": str(exc)}
     path.write_bytes(png_with_resolution(made.image, made.ppi))
+    try:
+        wsq = encode_wsq(made.image)
+    except WsqError as exc:
+        wsq_report: dict = {"made": False, "reason": str(exc)}
+    else:
+        path.with_suffix(".wsq").write_bytes(wsq)
+        wsq_report = {"made": True, "bytes": len(wsq), "bitrate_bpp": WSQ_BITRATE}
     return {"made": True, "ppi": made.ppi, "width_px": int(made.image.shape[1]),
             "height_px": int(made.image.shape[0]), "area_mm2": made.area_mm2,
-            "strain_rms": made.strain_rms, "coherence": made.coherence}
+            "strain_rms": made.strain_rms, "coherence": made.coherence, "wsq": wsq_report}
 
 
 def _write_cloud(path: Path, height: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
@@ -266,6 +280,10 @@ def _summary(report: dict, out: Path) -> str:
     lines.append(f"  fingerprint.png: {fp['width_px']}x{fp['height_px']} px at {fp['ppi']:g} ppi, "
                  f"{fp['area_mm2']:.0f} mm2" if fp["made"] else
                  f"  no fingerprint.png: {fp['reason']}")
+    if fp["made"]:
+        wsq = fp["wsq"]
+        lines.append(f"  fingerprint.wsq: {wsq['bytes']} bytes at {wsq['bitrate_bpp']:g} bpp"
+                     if wsq["made"] else f"  no fingerprint.wsq: {wsq['reason']}")
     lines.append(f"  time: load {t['load']:.0f} ms, reconstruct {t['reconstruct']:.0f} ms, "
                  f"depth {t['depth']:.0f} ms, write {t['write']:.0f} ms")
     lines.append(f"  wrote {', '.join(report['outputs'])} to {out}")

@@ -1,0 +1,1 @@
+"""The records integrators exchange for a print (no ROS): WSQ images (``wsq_image``)."""
