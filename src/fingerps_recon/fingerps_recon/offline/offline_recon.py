@@ -134,8 +134,8 @@ def run(args: argparse.Namespace) -> int:
                                      pixel_size=args.pixel_size)
     if fingerprint["made"]:
         written.append("fingerprint.png")
-    if fingerprint.get("wsq", {}).get("made"):
-        written.append("fingerprint.wsq")
+        if fingerprint["wsq"]["made"]:
+            written.append("fingerprint.wsq")
     t_write = time.perf_counter()
 
     report = {
