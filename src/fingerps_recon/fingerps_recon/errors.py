@@ -72,6 +72,10 @@ class WsqError(FingerpsReconError):
     ``records.wsq_image``."""
 
 
+class RecordError(FingerpsReconError):
+    """A print whose minutiae or exchange records cannot be made; raised by ``records``."""
+
+
 # --- scan/ ----------------------------------------------------------------------------------
 
 

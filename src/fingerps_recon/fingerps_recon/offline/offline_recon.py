@@ -33,6 +33,12 @@ Outputs in DIR:
 - ``fingerprint.wsq``  the same print as a WSQ file (`fingerps_recon.records.wsq_image`:
   NIST's codec, 0.75 bits per pixel, 500 ppi), checked by decoding it again; beside
   ``fingerprint.png`` whenever the codec gives the print back (else report.json says why)
+- ``fingerprint.fmr``  its ISO/IEC 19794-2:2005 minutiae record (NBIS's minutiae,
+  `fingerps_recon.records.iso_minutiae_record`), when NBIS finds minutiae
+- ``fingerprint.an2``  its ANSI/NIST-ITL 1-2011 transaction: Type-1, Type-14 (the WSQ image)
+  and Type-9 (the minutiae) (`fingerps_recon.records.ansi_nist_transaction`), with the
+  folder's name as 1.009 TCN; report.json gives each record's size, or why it was not made,
+  and the print's NFIQ 2
 - ``cloud.ply``  one point a mask pixel in the camera optical frame (x right, y down, z away
   from the camera): x = (u - cx) s, y = (v - cy) s, z = -height, with albedo as
   ``intensity`` and the normals (optical frame)
@@ -53,7 +59,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fingerps_recon.errors import FingerpsReconError, RolledPrintError, WsqError
+from fingerps_recon.errors import FingerpsReconError, RolledPrintError
 from fingerps_recon.offline.diligent_folder import (
     DEFAULT_SHADOW_FRACTION,
     PhotometricDataset,
@@ -69,7 +75,7 @@ from fingerps_recon.photometric.pipeline import (
     ReconstructionOptions,
     reconstruct,
 )
-from fingerps_recon.records.wsq_image import WSQ_BITRATE, encode_wsq
+from fingerps_recon.records.print_records import make_print_records
 from fingerps_recon.surface.ply import write_ply
 from fingerps_recon.surface.png_resolution import png_with_resolution
 from fingerps_recon.surface.rolled_print import rolled_print
@@ -134,8 +140,7 @@ def run(args: argparse.Namespace) -> int:
                                      pixel_size=args.pixel_size)
     if fingerprint["made"]:
         written.append("fingerprint.png")
-        if fingerprint["wsq"]["made"]:
-            written.append("fingerprint.wsq")
+        written.extend(fingerprint.pop("records_written"))
     t_write = time.perf_counter()
 
     report = {
@@ -196,8 +201,9 @@ print is unrolled: at 10 m a 5 mm deep finger changes the scale by 0.05 %."""
 
 def _write_fingerprint(path: Path, height: np.ndarray, normals: np.ndarray, mask: np.ndarray,
                        *, pixel_size: float | None) -> dict:
-    """Write the 500 ppi rolled print (PNG, and WSQ beside it when the codec gives it back);
-    return what report.json says of it."""
+    """Write the 500 ppi rolled print (PNG) and its exchange records beside it
+    (``records.print_records``); return what report.json says of them, with the records'
+    file names under ``records_written``."""
     if pixel_size is None:
         return {"made": False, "reason": "needs --pixel-size (metres per pixel): a 500 ppi "
                 "print needs the metric scale"}
@@ -211,16 +217,11 @@ def _write_fingerprint(path: Path, height: np.ndarray, normals: np.ndarray, mask
     except RolledPrintError as exc:
         return {"made": False, "reason": str(exc)}
     path.write_bytes(png_with_resolution(made.image, made.ppi))
-    try:
-        wsq = encode_wsq(made.image)
-    except WsqError as exc:
-        wsq_report: dict = {"made": False, "reason": str(exc)}
-    else:
-        path.with_suffix(".wsq").write_bytes(wsq)
-        wsq_report = {"made": True, "bytes": len(wsq), "bitrate_bpp": WSQ_BITRATE}
+    records = make_print_records(made.image, transaction_control=path.parent.resolve().name)
     return {"made": True, "ppi": made.ppi, "width_px": int(made.image.shape[1]),
             "height_px": int(made.image.shape[0]), "area_mm2": made.area_mm2,
-            "strain_rms": made.strain_rms, "coherence": made.coherence, "wsq": wsq_report}
+            "strain_rms": made.strain_rms, "coherence": made.coherence,
+            "records": records.report(), "records_written": records.write(path.parent)}
 
 
 def _write_cloud(path: Path, height: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
@@ -281,9 +282,12 @@ def _summary(report: dict, out: Path) -> str:
                  f"{fp['area_mm2']:.0f} mm2" if fp["made"] else
                  f"  no fingerprint.png: {fp['reason']}")
     if fp["made"]:
-        wsq = fp["wsq"]
-        lines.append(f"  fingerprint.wsq: {wsq['bytes']} bytes at {wsq['bitrate_bpp']:g} bpp"
-                     if wsq["made"] else f"  no fingerprint.wsq: {wsq['reason']}")
+        records = fp["records"]
+        lines.append(f"  NFIQ 2: {records['nfiq2']}, minutiae: {records['minutiae']}")
+        for name, rec in records.items():
+            if isinstance(rec, dict):
+                lines.append(f"  {name}: {rec['bytes']} bytes" if rec["made"]
+                             else f"  no {name}: {rec['reason']}")
     lines.append(f"  time: load {t['load']:.0f} ms, reconstruct {t['reconstruct']:.0f} ms, "
                  f"depth {t['depth']:.0f} ms, write {t['write']:.0f} ms")
     lines.append(f"  wrote {', '.join(report['outputs'])} to {out}")
