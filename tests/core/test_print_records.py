@@ -10,12 +10,12 @@ within 4.1, 4.2, 5.7 deg of the ground truth (median; 0-2.4 % pointing the other
 from __future__ import annotations
 
 import datetime
-import sys
 from pathlib import Path
 
 import nbis
 import numpy as np
 import pytest
+from record_readers import read_ansi_nist, read_iso_19794_2_2005, scalar
 from scipy.spatial import cKDTree
 
 from fingerps_driver.simulation import FingertipShape, RigConfig, SimulatedRig
@@ -28,9 +28,6 @@ from fingerps_recon.records.print_minutiae import PrintMinutiae, find_minutiae
 from fingerps_recon.records.print_records import make_print_records
 from fingerps_recon.records.wsq_image import MAX_RMS_ERROR, decode_wsq
 from fingerps_recon.surface.rolled_print import rolled_print
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from record_readers import read_ansi_nist, read_iso_19794_2_2005, scalar
 
 PX_PER_MM = 500 / 25.4
 #: Largest median direction error, deg, against the ground truth (measured 4.1-5.7).

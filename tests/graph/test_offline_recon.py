@@ -28,6 +28,7 @@ import pytest
 import scipy.io
 from analytic_surfaces import sphere_normals
 from diligent_cases import CASES, spoil_folder
+from record_readers import read_ansi_nist, read_iso_19794_2_2005, scalar
 
 from fingerps_driver.simulation import Scene, SimulatedRig
 from fingerps_recon.photometric.angular_error import angular_error_deg
@@ -285,11 +286,30 @@ def test_rig_finger_without_mask(offline_recon: Callable, tmp_path: Path,
     assert "fingerprint.png: " in run.stdout
 
     # The same print as a WSQ file beside it, decoded by NBIS: 500 ppi, the PNG's pixels.
-    assert report["fingerprint"]["wsq"]["made"] and "fingerprint.wsq" in report["outputs"]
-    wsq_image, ppi = decode_wsq((out / "fingerprint.wsq").read_bytes())
+    records = report["fingerprint"]["records"]
+    assert records["fingerprint.wsq"]["made"] and "fingerprint.wsq" in report["outputs"]
+    wsq_data = (out / "fingerprint.wsq").read_bytes()
+    wsq_image, ppi = decode_wsq(wsq_data)
     assert ppi == 500 and wsq_image.shape == print_image.shape
     assert np.sqrt(np.mean((wsq_image.astype(np.float64) - print_image) ** 2)) < MAX_RMS_ERROR
     assert "fingerprint.wsq: " in run.stdout
+    # Its minutiae record and its ANSI/NIST transaction, read back from the standards' layouts
+    # (tests/record_readers.py): the same print, the same WSQ file, the same minutiae.
+    # NFIQ 2 cannot score this small print (352 x 300 px): the report says so, the rest is made.
+    assert records["nfiq2"] is None and "NFIQ 2" in records["nfiq2_problem"]
+    assert records["minutiae"] > 0
+    iso = read_iso_19794_2_2005((out / "fingerprint.fmr").read_bytes())
+    assert (iso["width"], iso["height"]) == (print_image.shape[1], print_image.shape[0])
+    assert len(iso["minutiae"]) == records["minutiae"] and iso["quality"] == 0
+    transaction = read_ansi_nist((out / "fingerprint.an2").read_bytes())
+    assert [t for t, _ in transaction] == [1, 14, 9]
+    assert transaction[1][1][999] == wsq_data
+    assert len(transaction[2][1][137]) == records["minutiae"]
+    assert [(m["x"], m["y"]) for m in iso["minutiae"]] == [
+        (int(row[1]), int(row[2])) for row in transaction[2][1][137]]
+    assert scalar(transaction[0][1], 9) == out.name  # TCN: the output folder's name
+    for name in ("fingerprint.fmr", "fingerprint.an2"):
+        assert name in report["outputs"] and f"{name}: " in run.stdout
 
 
 def test_model_hk(offline_recon: Callable, tmp_path: Path,

@@ -13,8 +13,8 @@ Records, in this order (IDC 1 ties the image and its minutiae together):
   9.005-9.012 layout) and the INCITS 378 / ISO 19794-2 block of Table 28: 9.126 CBI
   ``27^513`` (CBEFF owner INCITS M1, ANSI 378 minutiae without ridge counts), 9.127 CEI
   ``NONE^0``, 9.128 HLL, 9.129 VLL, 9.130 SLC ``1``, 9.131 THPS, 9.132 TVPS, 9.133 FVW
-  ``0``, 9.134 FGP, 9.135 FQD (the print's NFIQ 2), 9.136 NOM, 9.137 FMD: one subfield a
-  minutia, index ^ x ^ y (pixels, origin top-left) ^ angle (units of 2 degrees,
+  ``0``, 9.134 FGP, 9.135 FQD (the print's NFIQ 2, 0 when it has none), 9.136 NOM, 9.137
+  FMD: one subfield a minutia, index ^ x ^ y (pixels, origin top-left) ^ angle (units of 2 degrees,
   counter-clockwise from +x) ^ type (1 ridge ending, 2 bifurcation) ^ quality (1-100).
 
 IMP ``1`` "live-scan rolled": the print is a rolled-equivalent of a live capture.
@@ -87,7 +87,7 @@ def ansi_nist_transaction(wsq: bytes, width: int, height: int,
         r9.IDC = 1
         for tag, value in ((3, LIVE_SCAN_ROLLED), (4, "U"), (128, width),
                            (129, height), (130, 1), (131, WSQ_PPI), (132, WSQ_PPI), (133, 0),
-                           (134, finger_position), (135, int(np.clip(minutiae.nfiq2, 0, 100))),
+                           (134, finger_position), (135, int(np.clip(minutiae.nfiq2 or 0, 0, 100))),
                            (136, len(minutiae))):
             r9 += nistitl.Field(9, tag, str(value))
         r9 += _items_field(nistitl, 9, 126, [("27", "513")])

@@ -7,8 +7,8 @@ One finger view, big-endian, as the standard lays it out (sec. 7):
   width and height in pixels (2 + 2), horizontal and vertical resolution in pixels per
   centimetre (2 + 2; 197 for 500 ppi), number of finger views (1), reserved (1);
 - finger view header, 4 bytes: finger position (0 unknown), view number (high nibble) and
-  impression type (low nibble), finger quality 0-100 (the print's NFIQ 2), number of
-  minutiae;
+  impression type (low nibble), finger quality 0-100 (the print's NFIQ 2; 0 when it has
+  none), number of minutiae;
 - 6 bytes a minutia: type (2 bits: 01 ridge ending, 10 bifurcation) and x (14 bits), 2
   reserved bits and y (14 bits), angle in units of 360/256 degrees (counter-clockwise from
   +x), quality 1-100;
@@ -64,7 +64,7 @@ def iso_minutiae_record(minutiae: PrintMinutiae, *, finger_position: int = 0,
     header = b"FMR\x00" + b" 20\x00" + struct.pack(
         ">IHHHHHBB", length, 0, minutiae.width, minutiae.height, PPCM_500PPI, PPCM_500PPI, 1, 0)
     view = struct.pack(">BBBB", finger_position, impression_type,
-                       int(np.clip(minutiae.nfiq2, 0, 100)), n)
+                       int(np.clip(minutiae.nfiq2 or 0, 0, 100)), n)
     table = np.zeros(n, dtype=[("type_x", ">u2"), ("y", ">u2"), ("angle", "u1"),
                                ("quality", "u1")])
     table["type_x"] = (minutiae.kind[keep].astype(np.uint16) << 14) | minutiae.x_px[keep]

@@ -24,7 +24,8 @@ class PrintMinutiae:
 
     ``x_px``, ``y_px`` (N,) int; ``angle_deg`` (N,) float in [0, 360), ISO convention (module
     docstring); ``kind`` (N,) uint8 ISO type (1 ridge ending, 2 bifurcation); ``quality`` (N,)
-    uint8 1-100 (mindtct's reliability); ``nfiq2`` 0-100; ``width``, ``height`` of the print.
+    uint8 1-100 (mindtct's reliability); ``nfiq2`` 0-100, None when NFIQ 2 could not score
+    the print (``nfiq2_problem`` says why); ``width``, ``height`` of the print.
     """
 
     x_px: np.ndarray
@@ -32,22 +33,24 @@ class PrintMinutiae:
     angle_deg: np.ndarray
     kind: np.ndarray
     quality: np.ndarray
-    nfiq2: int
+    nfiq2: int | None
     width: int
     height: int
+    nfiq2_problem: str = ""
 
     def __len__(self) -> int:
         return int(self.x_px.size)
 
 
-@lru_cache(maxsize=1)
-def _extractor():
+@lru_cache(maxsize=2)
+def _extractor(nfiq2: bool):
+    """NBIS's extractor at 500 ppi, with or without NFIQ 2 (which fails on some prints)."""
     try:
         import nbis
     except ImportError as exc:
         raise RecordError(f"NIST NBIS is not installed ({exc}): pip install nbis-py") from exc
     settings = nbis.NbisExtractorSettings(min_quality=0.0, get_center=False,
-                                          check_fingerprint=False, compute_nfiq2=True,
+                                          check_fingerprint=False, compute_nfiq2=nfiq2,
                                           ppi=500.0)
     return nbis.new_nbis_extractor(settings)
 
@@ -66,9 +69,17 @@ def find_minutiae(image: np.ndarray) -> PrintMinutiae:
     ok, png = cv2.imencode(".png", np.ascontiguousarray(img))
     if not ok:
         raise RecordError("OpenCV could not encode the print for NBIS")
+    nfiq2: int | None = None
+    nfiq2_problem = ""
     try:
-        found = _extractor().extract_minutiae(png.tobytes())
-        nfiq2 = int(found.quality().score)
+        try:
+            found = _extractor(True).extract_minutiae(png.tobytes())
+            nfiq2 = int(found.quality().score)
+        except Exception as exc:  # NbisError.Nfiq2ComputeFailed: the minutiae without it
+            if "Nfiq2" not in type(exc).__name__:
+                raise
+            nfiq2_problem = f"NFIQ 2 could not score the print ({type(exc).__name__} {exc})"
+            found = _extractor(False).extract_minutiae(png.tobytes())
     except Exception as exc:  # nbis raises its own NbisError / InternalError
         raise RecordError(f"NBIS could not find a fingerprint's minutiae in the {img.shape[1]} "
                           f"x {img.shape[0]} print ({type(exc).__name__} {exc}): no minutiae "
@@ -80,4 +91,4 @@ def find_minutiae(image: np.ndarray) -> PrintMinutiae:
         x_px=table[:, 0].astype(np.int64), y_px=table[:, 1].astype(np.int64),
         angle_deg=table[:, 2] % 360.0, kind=table[:, 3].astype(np.uint8),
         quality=np.clip(np.rint(table[:, 4] * 100.0), 1, 100).astype(np.uint8),
-        nfiq2=nfiq2, width=img.shape[1], height=img.shape[0])
+        nfiq2=nfiq2, width=img.shape[1], height=img.shape[0], nfiq2_problem=nfiq2_problem)

@@ -31,8 +31,8 @@ FILE_NAMES = {"wsq": "fingerprint.wsq", "iso_template": "fingerprint.fmr",
 
 @dataclass(frozen=True)
 class PrintRecords:
-    """The records of one print (None where not made: ``reasons`` says why), its minutiae
-    (None when NBIS could not run) and their count and the print's NFIQ 2."""
+    """The records of one print (None where not made: ``reasons`` says why) and its minutiae
+    (None when NBIS could not run)."""
 
     wsq: bytes | None
     iso_template: bytes | None
@@ -62,6 +62,8 @@ class PrintRecords:
                                 "records": "1, 14, 9" if self.iso_template else "1, 14"}}
         out: dict = {"nfiq2": self.nfiq2,
                      "minutiae": None if self.minutiae is None else len(self.minutiae)}
+        if self.minutiae is not None and self.minutiae.nfiq2_problem:
+            out["nfiq2_problem"] = self.minutiae.nfiq2_problem
         for name, file_name in FILE_NAMES.items():
             data = getattr(self, name)
             out[file_name] = ({"made": True, "bytes": len(data), **made[name]}
