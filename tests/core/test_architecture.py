@@ -32,6 +32,9 @@ ROS_EXCEPTIONS = {
     # a leaf command: its bag input is read with sessions.bag_reader and converted with
     # fingerps_ros.image_conversion (lazily, only for a bag); its DiLiGenT input needs no ROS
     "fingerps_recon.offline.offline_tune",
+    # a leaf command: reads a session bag's fingerprint messages with sessions.bag_reader and
+    # fingerps_ros.image_conversion (lazily); the records it writes are the records room's
+    "fingerps_recon.offline.session_records",
 }
 # Rooms of plain science: numpy in, numpy out, no ROS.
 SCIENCE_ROOMS = (
