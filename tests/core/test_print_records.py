@@ -180,6 +180,7 @@ def test_a_print_without_minutiae_gets_no_template_and_no_type_9() -> None:
 @pytest.mark.parametrize("image, words", [
     (np.zeros((100, 100), np.float32), "8-bit grey"),
     (np.zeros((100, 100, 3), np.uint8), "8-bit grey"),
+    (np.full((10, 10), 128, np.uint8), "too small for NBIS"),  # NBIS would crash the process
 ])
 def test_what_is_not_a_print_is_refused(image: np.ndarray, words: str) -> None:
     with pytest.raises(RecordError, match=words):

@@ -47,6 +47,33 @@ def test_unmeasured_motion_and_residual_are_not_judged() -> None:
     assert judge_quality(figures, QualityThresholds()).accepted
 
 
+def test_nfiq2_is_judged_only_with_a_threshold() -> None:
+    poor = QualityFigures(**{**vars(GOOD), "nfiq2": 12.0})
+    assert judge_quality(poor, QualityThresholds()).accepted  # min_nfiq2 0: not judged
+    assert judge_quality(poor, QualityThresholds(min_nfiq2=12.0)).accepted
+    verdict = judge_quality(poor, QualityThresholds(min_nfiq2=40.0))
+    assert not verdict.accepted and verdict.reasons[0].startswith("print quality NFIQ 2 12 < 40")
+    unscored = QualityFigures(**{**vars(GOOD), "nfiq2": math.nan})
+    assert "NFIQ 2 could not score the print" in judge_quality(
+        unscored, QualityThresholds(min_nfiq2=40.0)).reasons[0]
+
+
+@pytest.mark.parametrize(("change", "advice", "not_advice"), [
+    ({"coverage": 0.15}, "move the finger closer", "hold still"),
+    ({"motion_px": 1.5}, "hold still", "clean the lens"),
+    ({"ridge_visibility": 0.006}, "clean the lens", "hold still"),
+    ({}, "clean the finger and the lens", "move the finger closer"),
+])
+def test_a_poor_print_s_reason_says_what_to_do(change: dict, advice: str,
+                                              not_advice: str) -> None:
+    # Each of these figures passes its own threshold: only NFIQ 2 fails, and the others tell
+    # the user which way to go.
+    figures = QualityFigures(**{**vars(GOOD), "nfiq2": 20.0, **change})
+    verdict = judge_quality(figures, QualityThresholds(min_nfiq2=40.0))
+    assert len(verdict.reasons) == 1
+    assert advice in verdict.reasons[0] and not_advice not in verdict.reasons[0]
+
+
 def test_negative_thresholds_are_refused() -> None:
     with pytest.raises(FingerpsReconError, match="max_motion_px"):
         QualityThresholds(max_motion_px=-1.0)

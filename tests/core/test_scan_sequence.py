@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from fingerps_driver.simulation import FingertipShape, RigConfig, SimulatedRig
 from fingerps_recon.errors import ImpossibleGoalError, RolledPrintError, ScanAbortedError
 from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
 from fingerps_recon.scan.scan_sequence import (
@@ -32,7 +33,7 @@ from fingerps_recon.scan.scan_settings import (
     ScanSettings,
     goal_settings,
 )
-from fingerps_recon.surface.rolled_print import PrintRejection
+from fingerps_recon.surface.rolled_print import PrintRejection, rolled_print
 from fingerps_ros.errors import FingerpsError
 
 H = W = 64
@@ -79,7 +80,8 @@ def _burst(burst_id: int, *, finger: bool = True, shift_px: int = 0, repeat: boo
                      source=f"message {burst_id}")
 
 
-def _reconstruction(*, residual: float = 0.05, print_error: str | None = None) -> Any:
+def _reconstruction(*, residual: float = 0.05, print_error: str | None = None,
+                    print_image: np.ndarray | None = None) -> Any:
     """What the verdict looks at: a finger disk, ridged normals, mid-grey frames."""
     rows, cols = np.mgrid[0:H, 0:W].astype(np.float64)
     mask = (rows - H / 2) ** 2 + (cols - W / 2) ** 2 < (0.35 * H) ** 2
@@ -91,7 +93,8 @@ def _reconstruction(*, residual: float = 0.05, print_error: str | None = None) -
     def fingerprint() -> SimpleNamespace:
         if print_error:
             raise RolledPrintError(PrintRejection.TOO_SMALL, print_error)
-        return SimpleNamespace(image=np.full((10, 10), 128, np.uint8))
+        return SimpleNamespace(image=np.full((10, 10), 128, np.uint8) if print_image is None
+                               else print_image)
 
     result = SimpleNamespace(mask=mask, normals_ps=normals, residual=residual)
     return SimpleNamespace(result=result, images=images, dark=None, full_scale=255.0,
@@ -192,6 +195,35 @@ def test_a_rejected_verdict_and_a_print_that_cannot_be_made() -> None:
     assert end.message == "burst 2: rejected: fingerprint: too little finger"
     assert end.outcome.fingerprint is None
     assert rig.sequence.status(calibrated=True).ok  # the quality verdict itself accepted
+
+
+@pytest.fixture(scope="module")
+def rig_print() -> np.ndarray:
+    """The rolled print of a synthetic finger's true depth on the rig."""
+    rig = SimulatedRig(RigConfig(finger=FingertipShape(identity=3)))
+    truth = rig.finger_truth()
+    return rolled_print(truth.depth_m, mask=truth.mask, camera_matrix=rig.camera_matrix,
+                        normals_ps=truth.normals_ps).image
+
+
+def test_the_print_s_nfiq2_is_judged_and_its_records_made_on_request(rig_print) -> None:
+    made = _reconstruction(print_image=rig_print)
+    end = Rig([_burst(1), _burst(2)], [made]).execute(_settings())
+    nfiq2 = end.outcome.verdict.figures.nfiq2
+    assert end.outcome.accepted and 0 < nfiq2 <= 100 and end.outcome.records is None
+    assert end.message.endswith(f"(NFIQ 2 {nfiq2:.0f})")
+
+    # Above the print's NFIQ 2: rejected, with what to do; the records on request.
+    made = _reconstruction(print_image=rig_print)
+    end = Rig([_burst(1), _burst(2)], [made]).execute(
+        _settings(records=True, values={"min_nfiq2": nfiq2 + 1}))
+    assert not end.outcome.accepted
+    (reason,) = end.outcome.reasons
+    assert reason.startswith(f"print quality NFIQ 2 {nfiq2:.0f} < {nfiq2 + 1:.0f}: ")
+    records = end.outcome.records
+    assert records is not None and records.nfiq2 == nfiq2
+    assert records.wsq[:2] == b"\xff\xa0" and records.iso_template[:4] == b"FMR\x00"
+    assert b"1.009:burst-2" in records.transaction
 
 
 def test_a_moving_finger_is_retaken_then_aborts() -> None:
@@ -310,7 +342,7 @@ def test_status_carries_the_last_figures() -> None:
     values = rig.sequence.status(calibrated=True).values
     assert list(values)[6:] == ["coverage", "saturated_fraction", "dark_fraction",
                                 "ridge_visibility", "motion_px", "motion_correlation",
-                                "residual", "busy", "calibrated"]
+                                "residual", "nfiq2", "busy", "calibrated"]
     assert values["residual"] == "0.05" and values["busy"] == "False"
 
 
@@ -334,7 +366,7 @@ def test_goal_settings_from_parameters_and_overrides() -> None:
 
 def test_the_parameter_table() -> None:
     names = [s.name for s in SCAN_PARAMETERS]
-    assert len(names) == len(set(names)) == 24 - 2  # + use_sim_time, start_type_description
+    assert len(names) == len(set(names)) == 25 - 2  # + use_sim_time, start_type_description
     assert set(GOAL_PARAMETERS) <= set(names)
     for spec in SCAN_PARAMETERS:
         if spec.min_value is not None:

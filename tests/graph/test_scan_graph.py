@@ -15,6 +15,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.action import ActionClient
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from record_readers import read_ansi_nist, read_iso_19794_2_2005
 from std_msgs.msg import String
 
 from fingerps_driver.board.emulator_control_client import BoardEmulatorControl
@@ -24,6 +25,7 @@ from fingerps_msgs.action import Scan
 from fingerps_msgs.srv import CalibrateFlatField, CalibrateLights
 from fingerps_recon.photometric.angular_error import angular_error_deg
 from fingerps_recon.photometric.frames import optical_to_ps
+from fingerps_recon.records.wsq_image import decode_wsq
 from fingerps_ros import topics
 from fingerps_ros.image_conversion import image_to_array
 
@@ -163,6 +165,33 @@ def test_scan_with_a_finger_meets_the_accuracy_and_bad_goals_are_rejected(graph)
     assert result.ridge_visibility > 0.005
     session = Path(result.session_path)
     assert session.parent == graph.tmp_path / "bags" and session.is_dir()
+
+    # The default finger's ridges are an analytic spiral: NFIQ 2 cannot score its print.
+    assert np.isnan(result.nfiq2) and len(result.wsq) == 0  # no records: not asked for
+
+    # A synthetic fingerprint (identity 3), its records asked for, and a print quality
+    # threshold above its NFIQ 2: rejected with what to do; NFIQ 2 in the result and on
+    # /diagnostics; the records read back from the standards' layouts and NBIS's decoder.
+    graph.set_param("sim.finger_identity", 3)
+    strict = Parameter("min_nfiq2", value=100.0).to_parameter_msg()
+    done = graph.result(graph.send(Scan.Goal(bursts=1, overrides=[strict], records=True)))
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.message
+    result = done.result
+    assert 0 < result.nfiq2 < 100 and not result.accepted, result.message
+    (reason,) = result.reasons
+    assert reason.startswith(f"print quality NFIQ 2 {result.nfiq2:.0f} < 100: "), reason
+    graph.spin_until(lambda: graph.scan_status.get("nfiq2") == f"{result.nfiq2:.4g}",
+                     "NFIQ 2 on /diagnostics")
+    print_image = image_to_array(result.fingerprint)
+    wsq_image, ppi = decode_wsq(bytes(result.wsq))
+    assert ppi == 500 and wsq_image.shape == print_image.shape
+    iso = read_iso_19794_2_2005(bytes(result.iso_template))
+    assert iso["quality"] == int(result.nfiq2) and len(iso["minutiae"]) > 20
+    transaction = read_ansi_nist(bytes(result.ansi_nist_transaction))
+    assert [t for t, _ in transaction] == [1, 14, 9]
+    assert transaction[1][1][999] == bytes(result.wsq)
+    assert list(result.record_problems) == []
+    graph.set_param("sim.finger_identity", -1)
 
     # impossible goals: rejected at once, each with its reason
     bad = [

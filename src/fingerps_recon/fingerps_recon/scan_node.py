@@ -108,7 +108,8 @@ class ScanNode(Node):
         return goal_settings(bursts=goal.bursts, model=goal.model, timeout_s=goal.timeout,
                              values=values, problems=problems,
                              default_timeout_s=float(self._value("timeout")),
-                             presence_period_s=float(self._value("presence_period")))
+                             presence_period_s=float(self._value("presence_period")),
+                             records=goal.records)
 
     def _override_problem(self, msg: Any) -> str | None:
         """Why a goal's parameter override is refused, or None."""

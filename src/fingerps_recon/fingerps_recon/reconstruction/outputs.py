@@ -21,6 +21,7 @@ from std_msgs.msg import Header
 from fingerps_recon.photometric.frames import ps_to_optical
 from fingerps_recon.photometric.normal_map import normal_map_rgb
 from fingerps_recon.photometric.pipeline import Reconstruction
+from fingerps_recon.records.print_records import FILE_NAMES
 from fingerps_recon.scan.scan_sequence import ScanOutcome
 from fingerps_ros import topics
 from fingerps_ros.image_conversion import array_to_image
@@ -93,7 +94,8 @@ def fingerprint_output(image: np.ndarray, stamp: Time) -> Output:
 def fill_scan_result(result: Any, outcome: ScanOutcome) -> None:
     """A Scan action's result (``fingerps_msgs/action/Scan``) of a scan that succeeded: the
     verdict, the best burst's normals (32FC3), normal map (rgb8) and points in its header,
-    its print if made, and the verdict's figures."""
+    its print if made, the verdict's figures (NFIQ 2 among them) and the print's records
+    when the goal asked for them."""
     rec, header, f = outcome.made.result, outcome.burst.source.header, outcome.verdict.figures
     result.success, result.accepted = True, outcome.accepted
     result.reasons, result.message = list(outcome.reasons), outcome.message
@@ -105,4 +107,11 @@ def fill_scan_result(result: Any, outcome: ScanOutcome) -> None:
     result.finger_coverage, result.saturated_fraction = f.coverage, f.saturated_fraction
     result.dark_fraction, result.ridge_visibility = f.dark_fraction, f.ridge_visibility
     result.motion_px, result.motion_correlation = f.motion_px, f.motion_correlation
-    result.residual = f.residual
+    result.residual, result.nfiq2 = f.residual, f.nfiq2
+    records = outcome.records
+    if records is not None:
+        result.wsq = records.wsq or b""
+        result.iso_template = records.iso_template or b""
+        result.ansi_nist_transaction = records.transaction or b""
+        result.record_problems = [f"{FILE_NAMES[name]}: {why}"
+                                  for name, why in records.reasons.items()]

@@ -18,6 +18,9 @@ from fingerps_recon.errors import RecordError
 
 #: ISO/IEC 19794-2 minutia type codes.
 RIDGE_ENDING, BIFURCATION = 1, 2
+#: Smallest side of a print given to NBIS, pixels (3.3 mm at 500 ppi): NBIS's mindtct crashes
+#: the process on a 10 x 10 image; 32 and more are handled.
+MIN_SIDE_PX = 64
 @dataclass(frozen=True)
 class PrintMinutiae:
     """Minutiae of one print in its pixel frame (x right, y down, origin top-left).
@@ -66,6 +69,9 @@ def find_minutiae(image: np.ndarray) -> PrintMinutiae:
     img = np.asarray(image)
     if img.ndim != 2 or img.dtype != np.uint8:
         raise RecordError(f"a print is one 8-bit grey channel: got {img.dtype} {img.shape}")
+    if min(img.shape) < MIN_SIDE_PX:
+        raise RecordError(f"a {img.shape[1]} x {img.shape[0]} px print is too small for NBIS "
+                          f"(at least {MIN_SIDE_PX} px a side)")
     ok, png = cv2.imencode(".png", np.ascontiguousarray(img))
     if not ok:
         raise RecordError("OpenCV could not encode the print for NBIS")

@@ -74,11 +74,13 @@ class PrintRecords:
 
 def make_print_records(image: np.ndarray, *, transaction_control: str,
                        originating_agency: str = "FINGERPS",
-                       date: datetime.date | None = None) -> PrintRecords:
+                       date: datetime.date | None = None,
+                       minutiae: PrintMinutiae | None = None) -> PrintRecords:
     """The records of a 500 ppi print (H, W) uint8, ridges dark (module docstring).
 
     ``transaction_control`` names the ANSI/NIST transaction (1.009 TCN); see
-    ``ansi_nist_transaction``.
+    ``ansi_nist_transaction``. ``minutiae``: the print's, when already found
+    (``find_minutiae``); None finds them.
     """
     reasons: dict[str, str] = {}
     try:
@@ -87,11 +89,11 @@ def make_print_records(image: np.ndarray, *, transaction_control: str,
         wsq = None
         reasons["wsq"] = str(exc)
         reasons["transaction"] = f"no WSQ image for its Type-14 record ({exc})"
-    try:
-        minutiae: PrintMinutiae | None = find_minutiae(image)
-    except RecordError as exc:
-        minutiae = None
-        reasons["iso_template"] = str(exc)
+    if minutiae is None:
+        try:
+            minutiae = find_minutiae(image)
+        except RecordError as exc:
+            reasons["iso_template"] = str(exc)
     iso = None
     if minutiae is not None:
         if len(minutiae):

@@ -37,6 +37,9 @@ class QualityThresholds:
         is 0.5 mm = 16.7 px; 2 px is about an eighth of it).
     max_residual : float
         Lambertian fit residual, rms / mean intensity.
+    min_nfiq2 : float
+        NFIQ 2 of the print (0-100, NIST's quality score); 0 = not judged. A print NFIQ 2
+        cannot score fails a threshold above 0.
     """
 
     min_coverage: float = 0.1
@@ -45,6 +48,7 @@ class QualityThresholds:
     min_ridge_visibility: float = 0.005
     max_motion_px: float = 2.0
     max_residual: float = 0.25
+    min_nfiq2: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -65,6 +69,9 @@ class QualityFigures:
     motion_px: float
     motion_correlation: float
     residual: float
+    nfiq2: float = math.nan
+    """NFIQ 2 of the print (``records.print_minutiae``), NaN before it is made or when NFIQ 2
+    cannot score it."""
 
 
 @dataclass(frozen=True)
@@ -166,4 +173,31 @@ def judge_quality(figures: QualityFigures, thresholds: QualityThresholds) -> Qua
     if f.residual > t.max_residual:
         reasons.append(f"fit residual {f.residual:.3f} > {t.max_residual:.3f}: the images do "
                        "not fit the calibrated lights (recalibrate, or ambient light)")
+    if t.min_nfiq2 > 0 and not f.nfiq2 >= t.min_nfiq2:
+        score = "NFIQ 2 could not score the print" if math.isnan(f.nfiq2) else \
+            f"print quality NFIQ 2 {f.nfiq2:.0f} < {t.min_nfiq2:.0f}"
+        reasons.append(f"{score}: {nfiq2_advice(f, t)}")
     return QualityVerdict(not reasons, tuple(reasons), figures)
+
+
+#: A figure within this fraction of its limit counts as the likely cause of a poor print.
+NEAR_LIMIT = 0.5
+
+
+def nfiq2_advice(figures: QualityFigures, thresholds: QualityThresholds) -> str:
+    """What the user should do about a poor print, as far as the other figures tell the
+    causes apart: a finger small in view (move it closer), motion within the burst (hold
+    still), ridges blurred though the finger held still (clean the lens)."""
+    f, t = figures, thresholds
+    advice = []
+    if f.coverage < 2.0 * t.min_coverage:
+        advice.append(f"move the finger closer (it covers {100 * f.coverage:.0f}% of the "
+                      "image)")
+    if f.motion_px > NEAR_LIMIT * t.max_motion_px:
+        advice.append(f"hold still (it moved {f.motion_px:.1f} px)")
+    elif f.ridge_visibility < 2.0 * t.min_ridge_visibility:
+        advice.append(f"clean the lens (the ridges are faint, visibility "
+                      f"{f.ridge_visibility:.3f}, though the finger held still)")
+    if not advice:
+        advice.append("clean the finger and the lens, hold still, and try again")
+    return "; ".join(advice)

@@ -31,14 +31,16 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum, IntEnum
 from typing import Any, Protocol
 
 import numpy as np
 
-from fingerps_recon.errors import RolledPrintError, ScanAbortedError
+from fingerps_recon.errors import RecordError, RolledPrintError, ScanAbortedError
 from fingerps_recon.photometric.pipeline import ReconstructionOptions
+from fingerps_recon.records.print_minutiae import PrintMinutiae, find_minutiae
+from fingerps_recon.records.print_records import PrintRecords, make_print_records
 from fingerps_recon.scan.burst_motion import BurstMotion, estimate_motion
 from fingerps_recon.scan.finger_presence import FingerPresence, detect_finger
 from fingerps_recon.scan.quality import QualityVerdict, judge_quality, quality_figures
@@ -132,6 +134,9 @@ class ScanOutcome:
     message: str
     fingerprint: np.ndarray | None
     """(H, W) uint8 the 500 ppi rolled print; None when it cannot be made (see reasons)."""
+    records: PrintRecords | None = None
+    """The print's exchange records when the goal asked for them (``ScanSettings.records``)
+    and the print was made."""
 
 
 @dataclass(frozen=True)
@@ -304,7 +309,7 @@ class ScanSequence:
                 best = candidate
         assert best is not None
         tell(ScanState.RECONSTRUCTING, "done")
-        return _outcome(best)
+        return _outcome(best, settings)
 
     def _retake(self, burst: ScanBurst, motion: BurstMotion, settings: ScanSettings,
                 tally: ScanTally) -> None:
@@ -367,15 +372,38 @@ def _judge(made: Reconstruction, motion: BurstMotion, settings: ScanSettings) ->
     return judge_quality(figures, settings.thresholds)
 
 
-def _outcome(best: _Best) -> ScanOutcome:
-    """The best burst's verdict with its print; no print rejects it (never a garbage print
+def _outcome(best: _Best, settings: ScanSettings) -> ScanOutcome:
+    """The best burst's verdict with its print, judged again with the print's NFIQ 2, and the
+    print's records if the goal asked for them; no print rejects it (never a garbage print
     passed as good)."""
-    accepted, reasons = best.verdict.accepted, best.verdict.reasons
+    verdict = best.verdict
+    records = None
     try:
         fingerprint = best.made.fingerprint().image
     except RolledPrintError as exc:
-        accepted, reasons, fingerprint = False, (*reasons, f"fingerprint: {exc}"), None
+        fingerprint, print_problem = None, f"fingerprint: {exc}"
+    else:
+        print_problem = ""
+        minutiae = _minutiae(fingerprint)
+        nfiq2 = math.nan if minutiae is None or minutiae.nfiq2 is None else minutiae.nfiq2
+        verdict = judge_quality(replace(verdict.figures, nfiq2=float(nfiq2)),
+                                settings.thresholds)
+        if settings.records:
+            records = make_print_records(fingerprint, minutiae=minutiae,
+                                         transaction_control=f"burst-{best.burst.burst_id}")
+    accepted = verdict.accepted and fingerprint is not None
+    reasons = (*verdict.reasons, print_problem) if print_problem else verdict.reasons
+    nfiq2 = verdict.figures.nfiq2
     message = (f"burst {best.burst.burst_id}: "
-               + ("accepted" if accepted else "rejected: " + "; ".join(reasons)))
-    return ScanOutcome(best.burst, best.made, best.verdict, accepted, tuple(reasons), message,
-                       fingerprint)
+               + ("accepted" if accepted else "rejected: " + "; ".join(reasons))
+               + ("" if math.isnan(nfiq2) else f" (NFIQ 2 {nfiq2:.0f})"))
+    return ScanOutcome(best.burst, best.made, verdict, accepted, tuple(reasons), message,
+                       fingerprint, records)
+
+
+def _minutiae(fingerprint: np.ndarray) -> PrintMinutiae | None:
+    """NBIS's minutiae and NFIQ 2 of the print; None when NBIS cannot process it."""
+    try:
+        return find_minutiae(fingerprint)
+    except RecordError:
+        return None

@@ -29,7 +29,7 @@ GOAL_PARAMETERS = (
     "model", "hk_iterations", "projection", "mask_threshold", "enhance", "w", "k",
     "working_distance", "presence_threshold", "presence_min_coverage", "max_motion_px",
     "max_retakes", "min_coverage", "max_saturated_fraction", "max_dark_fraction",
-    "min_ridge_visibility", "max_residual")
+    "min_ridge_visibility", "max_residual", "min_nfiq2")
 """Parameters a goal may override (``Scan.Goal.overrides``)."""
 
 
@@ -68,6 +68,10 @@ SCAN_PARAMETERS: tuple[ParameterRow, ...] = (
                  "Verdict: ridge-band energy ratio of the normals at least", 0.0, 100.0),
     ParameterRow("max_residual", _T.max_residual,
                  "Verdict: Lambertian fit residual (rms / mean intensity) at most", 0.0, 10.0),
+    ParameterRow("min_nfiq2", _T.min_nfiq2,
+                 "Verdict: NFIQ 2 of the print (NIST's 0-100 quality score) at least; 0 = not "
+                 "judged. The reason tells the user what to do (move closer, hold still, "
+                 "clean the lens) where the other figures tell it", 0.0, 100.0),
     ParameterRow("recorder", "recorder",
                  "The recorder node (relative to the namespace) whose bag the result names; "
                  "empty = none", read_only=True),
@@ -87,16 +91,18 @@ class ScanSettings:
     presence_min_coverage: float
     max_retakes: int
     presence_period_s: float = 0.2
+    records: bool = False
+    """Make the print's WSQ, ISO/IEC 19794-2 and ANSI/NIST-ITL records (``Scan.Goal.records``)."""
 
 
 def goal_settings(*, bursts: int, model: str, timeout_s: float, values: Mapping[str, Any],
                   problems: Iterable[str] = (), default_timeout_s: float,
-                  presence_period_s: float) -> ScanSettings:
+                  presence_period_s: float, records: bool = False) -> ScanSettings:
     """The settings of a goal.
 
     Parameters
     ----------
-    bursts, model, timeout_s
+    bursts, model, timeout_s, records
         The goal's fields (``model`` empty and ``timeout_s`` 0: the parameters').
     values : Mapping[str, Any]
         Every `GOAL_PARAMETERS` value in force for the goal (overrides applied).
@@ -139,9 +145,10 @@ def goal_settings(*, bursts: int, model: str, timeout_s: float, values: Mapping[
         max_dark_fraction=float(values["max_dark_fraction"]),
         min_ridge_visibility=float(values["min_ridge_visibility"]),
         max_motion_px=float(values["max_motion_px"]),
-        max_residual=float(values["max_residual"]))
+        max_residual=float(values["max_residual"]), min_nfiq2=float(values["min_nfiq2"]))
     return ScanSettings(
         bursts=int(bursts), timeout_s=timeout_s or default_timeout_s, options=options,
         thresholds=thresholds, presence_threshold=float(values["presence_threshold"]),
         presence_min_coverage=float(values["presence_min_coverage"]),
-        max_retakes=int(values["max_retakes"]), presence_period_s=presence_period_s)
+        max_retakes=int(values["max_retakes"]), presence_period_s=presence_period_s,
+        records=bool(records))
