@@ -16,9 +16,9 @@ import nbis
 import numpy as np
 import pytest
 from record_readers import read_ansi_nist, read_iso_19794_2_2005, scalar
+from rig_prints import true_rolled_print
 from scipy.spatial import cKDTree
 
-from fingerps_driver.simulation import FingertipShape, RigConfig, SimulatedRig
 from fingerps_driver.simulation.fingerprint_pattern import (
     generate_fingerprint,
     render_rolled_print,
@@ -27,7 +27,6 @@ from fingerps_recon.errors import RecordError
 from fingerps_recon.records.print_minutiae import PrintMinutiae, find_minutiae
 from fingerps_recon.records.print_records import make_print_records
 from fingerps_recon.records.wsq_image import MAX_RMS_ERROR, decode_wsq
-from fingerps_recon.surface.rolled_print import rolled_print
 
 PX_PER_MM = 500 / 25.4
 #: Largest median direction error, deg, against the ground truth (measured 4.1-5.7).
@@ -47,10 +46,7 @@ def finger(request) -> tuple:
 def rig_print() -> tuple[np.ndarray, PrintMinutiae]:
     """The rolled print of a synthetic finger's true depth on the rig (as the pipeline makes
     it: the generator's own rendering is too sharp-edged for WSQ at 0.75 bpp, RMS 16)."""
-    rig = SimulatedRig(RigConfig(finger=FingertipShape(identity=3)))
-    truth = rig.finger_truth()
-    image = rolled_print(truth.depth_m, mask=truth.mask, camera_matrix=rig.camera_matrix,
-                         normals_ps=truth.normals_ps).image
+    image = true_rolled_print(3)
     return image, find_minutiae(image)
 
 

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rig_prints import true_rolled_print
 
-from fingerps_driver.simulation import FingertipShape, RigConfig, SimulatedRig
 from fingerps_recon.errors import ImpossibleGoalError, RolledPrintError, ScanAbortedError
 from fingerps_recon.photometric.pipeline import Model, ReconstructionOptions
 from fingerps_recon.scan.scan_sequence import (
@@ -33,7 +33,7 @@ from fingerps_recon.scan.scan_settings import (
     ScanSettings,
     goal_settings,
 )
-from fingerps_recon.surface.rolled_print import PrintRejection, rolled_print
+from fingerps_recon.surface.rolled_print import PrintRejection
 from fingerps_ros.errors import FingerpsError
 
 H = W = 64
@@ -199,11 +199,7 @@ def test_a_rejected_verdict_and_a_print_that_cannot_be_made() -> None:
 
 @pytest.fixture(scope="module")
 def rig_print() -> np.ndarray:
-    """The rolled print of a synthetic finger's true depth on the rig."""
-    rig = SimulatedRig(RigConfig(finger=FingertipShape(identity=3)))
-    truth = rig.finger_truth()
-    return rolled_print(truth.depth_m, mask=truth.mask, camera_matrix=rig.camera_matrix,
-                        normals_ps=truth.normals_ps).image
+    return true_rolled_print(3)
 
 
 def test_the_print_s_nfiq2_is_judged_and_its_records_made_on_request(rig_print) -> None:

@@ -13,14 +13,13 @@ import pytest
 from builtin_interfaces.msg import Time
 from rclpy.serialization import serialize_message
 from record_readers import read_ansi_nist, read_iso_19794_2_2005, scalar
+from rig_prints import true_rolled_print
 from std_msgs.msg import Header
 
-from fingerps_driver.simulation import FingertipShape, RigConfig, SimulatedRig
 from fingerps_recon.offline.session_records import main
 from fingerps_recon.reconstruction.outputs import fingerprint_message
 from fingerps_recon.records.wsq_image import MAX_RMS_ERROR, decode_wsq
 from fingerps_recon.sessions.session_bag import SessionBagWriter
-from fingerps_recon.surface.rolled_print import rolled_print
 from fingerps_ros.image_conversion import array_to_image
 
 TOPIC = "/fingerps/fingerprint"
@@ -28,14 +27,7 @@ TOPIC = "/fingerps/fingerprint"
 
 @pytest.fixture(scope="module")
 def prints() -> list[np.ndarray]:
-    """Rolled prints of two synthetic fingers' true depth on the rig."""
-    out = []
-    for identity in (3, 8):
-        rig = SimulatedRig(RigConfig(finger=FingertipShape(identity=identity)))
-        truth = rig.finger_truth()
-        out.append(rolled_print(truth.depth_m, mask=truth.mask, camera_matrix=rig.camera_matrix,
-                                normals_ps=truth.normals_ps).image)
-    return out
+    return [true_rolled_print(identity) for identity in (3, 8)]
 
 
 @pytest.fixture(scope="module")

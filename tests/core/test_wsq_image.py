@@ -12,9 +12,8 @@ import struct
 
 import numpy as np
 import pytest
+from rig_prints import true_rolled_print
 
-from fingerps_driver.simulation import RigConfig, SimulatedRig
-from fingerps_driver.simulation.fingertip import FingertipShape
 from fingerps_recon.errors import WsqError
 from fingerps_recon.records.wsq_image import (
     MAX_RMS_ERROR,
@@ -24,7 +23,6 @@ from fingerps_recon.records.wsq_image import (
     decode_wsq,
     encode_wsq,
 )
-from fingerps_recon.surface.rolled_print import rolled_print
 
 
 def _segments(data: bytes) -> dict[int, list[bytes]]:
@@ -44,11 +42,7 @@ def _segments(data: bytes) -> dict[int, list[bytes]]:
 
 @pytest.fixture(scope="module")
 def finger_print() -> np.ndarray:
-    """The rolled print of a synthetic fingerprint's true depth on the rig."""
-    rig = SimulatedRig(RigConfig(finger=FingertipShape(identity=3)))
-    truth = rig.finger_truth()
-    return rolled_print(truth.depth_m, mask=truth.mask, camera_matrix=rig.camera_matrix,
-                        normals_ps=truth.normals_ps).image
+    return true_rolled_print(3)
 
 
 def test_a_print_round_trips_with_the_format_s_fields(finger_print: np.ndarray) -> None:
