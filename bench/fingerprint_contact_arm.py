@@ -219,15 +219,15 @@ def contact_table(f: dict[str, float], models: Sequence[str]) -> None:
         misses = []
         if f[p + "ratio"] < TARGETS["ratio"]:
             scale = f.get(f"fingerprint.{m}.scale_pct_mean")
-            scale = "" if scale is None else f" ({scale:+.1f} % mean)"
+            scale = "" if scale is None else f"{scale:+.1f} % mean; "
             cause = (
                 "the ground-truth rolled print itself gets "
                 f"{f[c + 'truth_ratio']:.2f} of contact-vs-contact, so "
                 + ("most of the gap is rolled-vs-plain (a larger print's other minutiae, "
                    "the contact's distortion), not the 3D print"
                    if f[c + "truth_ratio"] < TARGETS["ratio"] else
-                   f"it is the 3D print's own share: its scale{scale} (``python "
-                   "bench/fingerprint_contact_arm.py --diagnose`` scores the prints "
+                   f"it is the 3D print's own share: its scale ({scale}'python "
+                   "bench/fingerprint_contact_arm.py --diagnose' scores the prints "
                    "enlarged by it), its minutiae (recall / precision of the benchmark's "
                    "table), the unrolling's residual distortion"))
             misses.append(f"ratio {f[p + 'ratio']:.2f} < {TARGETS['ratio']} (short by "
