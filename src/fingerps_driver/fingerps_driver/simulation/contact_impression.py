@@ -16,8 +16,8 @@ the impression is built in four steps, each drawn per impression from a seeded g
    (rho the ellipse's normalised radius). Skin outside the fingertip's outline (the
    pattern's mask) does not touch.
 2. Plastic distortion: the model of Cappelli, Maio & Maltoni, "Modelling plastic
-   distortion in fingerprint images", ICAPR 2001 (LNCS 2013, pp. 369-376; also the
-   Handbook of Fingerprint Recognition, Maltoni et al., 2nd ed., sec. 8.2): a
+   distortion in fingerprint images", ICAPR 2001 (LNCS 2013; also in the Handbook of
+   Fingerprint Recognition, Maltoni et al., on synthetic fingerprints): a
    close-contact region a (an ellipse about the contact's centre, ``close_fraction`` of the
    contact's semi-axes) where pressure and friction keep the skin from slipping; an
    external region c, dragged with the finger by a rigid transform T (rotation theta about
@@ -28,8 +28,10 @@ the impression is built in four steps, each drawn per impression from a seeded g
        distortion(u) = u + Delta(u) brake(shapedist_a(u), k),   Delta(u) = T(u) - u,
 
    with shapedist_a(u) the distance of u outside a (0 inside; here measured along the ray
-   from a's centre, |u| (1 - 1/rho_a)) and the brake function
-   brake(s, k) = 1 - exp(-s^2 / (2 k^2)) (0 in a, rising smoothly to 1; ``brake_k_mm`` = k).
+   from a's centre, |u| (1 - 1/rho_a)) and the brake function, here
+   brake(s, k) = 1 - exp(-s^2 / (2 k^2)) (0 in a, rising smoothly to 1; ``brake_k_mm`` = k;
+   the Gaussian form is our reading of the paper, not checked against its text, which was
+   not at hand: a brake that rises linearly from a's border would put a crease there).
    The map is smooth (C1 across a's border) and, for the drawn ranges, one-to-one: its
    Jacobian determinant stays positive (|Delta| <= ~1.5 mm, |grad brake| <= 0.61 / k;
    0.64-1.36 over 200 draws of the defaults: the skin compressed or stretched by up to
