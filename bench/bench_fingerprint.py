@@ -51,6 +51,17 @@ Figures per model (``fingerprint.<model>.*``):
   own share), and ``margin_sag_ratio``, the reconstructed depth's sag below the apex over
   the true one where the finger is tilted more than 40 deg (< 1: flatter).
 
+Contact-print arm (``fingerprint_contact_arm``; issue 23, item 2): per finger ``CONTACTS``
+(3) plate impressions of a 500 ppi scanner (``simulation.contact_impression``: Hertzian
+contact ellipse, the plastic distortion of Cappelli, Maio & Maltoni, ICAPR 2001, the
+scanner's look and a random placement); ``fingerprint.<model>.contact.genuine_3d_median``
+(each 3D capture vs each impression of its finger) beside
+``fingerprint.contact.genuine_cc_median`` (impression vs impression of one finger):
+``fingerprint.<model>.contact.ratio`` target >= 0.8; impostors (3D vs other fingers'
+impressions, impression vs impression) median and max, target unchanged (not 25 % above
+contact-vs-contact); ``eer_pct`` and ``fnmr_at_fmr01_pct`` (FMR <= 0.1 %; 3420 and 1710
+impostor scores) of both; the ground-truth rolled print vs the impressions as the diagnosis.
+
 ``fingerprint.truth.nfiq2_median`` is the ground-truth prints' own quality. Each figure
 that misses its target is named in the printed output with the gap and the likely cause.
 
@@ -79,6 +90,7 @@ from check_fingerprint_pattern import (
     truth_keeps,
 )
 from figures_report import print_figures
+from fingerprint_contact_arm import contact_table, run_arm
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
@@ -285,8 +297,9 @@ def measure(result: RolledPrint, rolled_mm: np.ndarray, pattern: FingerprintPatt
         out.det_evaluated = int(det_in.sum())
 
 
-def error_rates(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
-    """(EER, FNMR at FMR <= 1 %), fractions; a score >= the threshold is a match."""
+def error_rates(genuine: np.ndarray, impostor: np.ndarray, *,
+                fmr_max: float = 0.01) -> tuple[float, float]:
+    """(EER, FNMR at FMR <= ``fmr_max``), fractions; a score >= the threshold is a match."""
     thresholds = np.unique(np.concatenate([genuine, impostor, [np.inf]]))
     fmr = (impostor[None, :] >= thresholds[:, None]).mean(axis=1)
     fnmr = (genuine[None, :] < thresholds[:, None]).mean(axis=1)
@@ -298,7 +311,7 @@ def error_rates(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float
         eer = float((1 - w) * (fmr[j - 1] + fnmr[j - 1]) / 2 + w * (fmr[j] + fnmr[j]) / 2)
     else:
         eer = float((fmr[i] + fnmr[i]) / 2)
-    ok = fmr <= 0.01
+    ok = fmr <= fmr_max
     return eer, float(fnmr[ok].min()) if ok.any() else 1.0
 
 
@@ -386,8 +399,11 @@ def run() -> dict[str, float]:
     figures["fingerprint.identities"] = float(IDENTITIES)
     figures["fingerprint.captures"] = float(IDENTITIES * CAPTURES)
     figures["fingerprint.generate_s.median"] = generation_s()
+    figures.update(run_arm(extractor, {m.value: [[r.template for r in c] for c in results[m]]
+                                       for m in MODELS}, truth_templates, error_rates))
     figures["fingerprint.seconds"] = time.perf_counter() - t_start
     _table(figures)
+    contact_table(figures, [m.value for m in MODELS])
     return figures
 
 
