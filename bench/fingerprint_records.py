@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +34,8 @@ from fingerps_recon.records.wsq_image import MAX_RMS_ERROR, decode_wsq
 NFIQ2_THRESHOLDS = (0, 20, 30, 40, 50)
 #: False match rate of the operating point, fraction.
 FMR_OPERATING = 0.001
+
+ErrorRates = Callable[..., tuple[float, float]]
 
 
 @dataclass
@@ -84,21 +87,13 @@ def _read_back_problem(image: np.ndarray, made) -> str:
     return ""
 
 
-def fnmr_at_fmr(genuine: np.ndarray, impostor: np.ndarray, fmr: float) -> float:
-    """FNMR (fraction) at the lowest score threshold whose FMR is at most ``fmr``; a score at
-    or above the threshold is a match."""
-    thresholds = np.unique(np.concatenate([genuine, impostor, [np.inf]]))
-    false_match = (impostor[None, :] >= thresholds[:, None]).mean(axis=1)
-    ok = false_match <= fmr
-    threshold = thresholds[ok].min()
-    return float((genuine < threshold).mean())
-
-
 def nfiq2_threshold_effect(prefix: str, nfiq2: dict[str, float],
                            genuine: list[tuple[float, str]],
-                           impostor: list[tuple[float, str]]) -> dict[str, float]:
+                           impostor: list[tuple[float, str]],
+                           error_rates: ErrorRates) -> dict[str, float]:
     """``<prefix>nfiq2_<t>.rejected_pct`` and ``.fnmr_at_fmr01_pct`` for each threshold t of
-    :data:`NFIQ2_THRESHOLDS` (module docstring).
+    :data:`NFIQ2_THRESHOLDS` (module docstring); ``error_rates`` is the benchmark's
+    (``bench_fingerprint.error_rates``: EER and FNMR at FMR <= ``fmr_max``).
 
     ``nfiq2`` maps a capture's label ("i.c") to its print's NFIQ 2 (NaN: no score, rejected
     by any threshold above 0); comparisons are (score, "a v b") with captures and
@@ -115,5 +110,6 @@ def nfiq2_threshold_effect(prefix: str, nfiq2: dict[str, float],
         imp = np.array([score for score, label in impostor if not hit(label)])
         key = f"{prefix}nfiq2_{t}."
         out[key + "rejected_pct"] = 100.0 * len(rejected) / max(len(nfiq2), 1)
-        out[key + "fnmr_at_fmr01_pct"] = 100.0 * fnmr_at_fmr(gen, imp, FMR_OPERATING)
+        out[key + "fnmr_at_fmr01_pct"] = 100.0 * error_rates(gen, imp,
+                                                             fmr_max=FMR_OPERATING)[1]
     return out

@@ -12,20 +12,17 @@ from rig_prints import true_rolled_print
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 
-from fingerprint_records import (
-    RecordsCheck,
-    fnmr_at_fmr,
-    nfiq2_threshold_effect,
-)
+from bench_fingerprint import error_rates
+from fingerprint_records import RecordsCheck, nfiq2_threshold_effect
 
 
 def test_fnmr_at_fmr_takes_the_lowest_threshold_within_the_false_match_rate() -> None:
     impostor = np.concatenate([np.zeros(998), [30.0, 50.0]])
     genuine = np.array([20.0, 40.0, 45.0, 60.0])
     # FMR 0.1 %: one impostor of 1000 may match, so the threshold is 40: 20 misses.
-    assert fnmr_at_fmr(genuine, impostor, 0.001) == pytest.approx(0.25)
+    assert error_rates(genuine, impostor, fmr_max=0.001)[1] == pytest.approx(0.25)
     # FMR 0.2 %: both may, the threshold drops to 20 and every genuine score matches.
-    assert fnmr_at_fmr(genuine, impostor, 0.002) == pytest.approx(0.0)
+    assert error_rates(genuine, impostor, fmr_max=0.002)[1] == pytest.approx(0.0)
 
 
 def test_a_threshold_rejects_low_prints_and_their_genuine_comparisons_fail() -> None:
@@ -34,7 +31,7 @@ def test_a_threshold_rejects_low_prints_and_their_genuine_comparisons_fail() -> 
                (90.0, "1.1 v 1.T")]
     impostor = [(5.0, f"{a} v {b}") for a in ("0.0", "0.1") for b in ("1.0", "1.1")]
     impostor += [(5.0, "0.T v 1.0")] * 1000
-    out = nfiq2_threshold_effect("m.", nfiq2, genuine, impostor)
+    out = nfiq2_threshold_effect("m.", nfiq2, genuine, impostor, error_rates)
     assert out["m.nfiq2_0.rejected_pct"] == 0 and out["m.nfiq2_0.fnmr_at_fmr01_pct"] == 0
     # 30 rejects 0.1 (25) and 1.1 (no score): 3 of the 4 genuine comparisons fail.
     assert out["m.nfiq2_30.rejected_pct"] == pytest.approx(50.0)
