@@ -62,6 +62,13 @@ impressions, impression vs impression) median and max, target unchanged (not 25 
 contact-vs-contact); ``eer_pct`` and ``fnmr_at_fmr01_pct`` (FMR <= 0.1 %; 3420 and 1710
 impostor scores) of both; the ground-truth rolled print vs the impressions as the diagnosis.
 
+Records and print quality (``fingerprint_records``; issue 23, items 3 and 4): every HK
+print's WSQ image, ISO/IEC 19794-2 record and ANSI/NIST-ITL transaction made and read back
+by independent readers (``fingerprint.records.checked`` / ``read_back``, target: all; the
+time to make them, ``ms_median``); per model, what a Scan ``min_nfiq2`` of 20, 30, 40, 50
+would do: ``nfiq2_<t>.rejected_pct`` of the captures and ``nfiq2_<t>.fnmr_at_fmr01_pct``,
+the FNMR at FMR 0.1 % with a rejected capture's genuine comparisons counted as non-matches.
+
 ``fingerprint.truth.nfiq2_median`` is the ground-truth prints' own quality. Each figure
 that misses its target is named in the printed output with the gap and the likely cause.
 
@@ -91,6 +98,7 @@ from check_fingerprint_pattern import (
 )
 from figures_report import print_figures
 from fingerprint_contact_arm import contact_table, run_arm
+from fingerprint_records import RecordsCheck, nfiq2_threshold_effect, records_table
 
 from fingerps_calib.flat_field_calibration import flat_field_maps
 from fingerps_driver.simulation import FingertipShape, RigConfig, Scene, SimulatedRig
@@ -334,6 +342,7 @@ def run() -> dict[str, float]:
     truth_templates, truth_nfiq2, truth_minutiae = [], [], []
     surface_scales: list[float] = []
     fingers: list[str] = []  # class and ground-truth minutiae of each finger
+    records = RecordsCheck()  # the HK prints' records, read back
     print(f"{IDENTITIES} fingers x {CAPTURES} captures; poses roll +-{ROLL_DEG:g}, yaw "
           f"+-{YAW_DEG:g}, pitch +-{PITCH_DEG:g} deg, shift +-{SHIFT_MM:g} mm", flush=True)
     print(f"{'id':>3} {'c':>1} {'roll':>5} {'yaw':>5} {'pitch':>5} {'dx':>5} {'dy':>5} "
@@ -374,6 +383,8 @@ def run() -> dict[str, float]:
                     out.template = extractor.extract_minutiae(png_bytes(fp.image))
                     out.nfiq2 = float(out.template.quality().score)
                     measure(fp, rolled_mm, pattern, out.template, out)
+                    if model is Model.HK:
+                        records.check(fp.image, f"{identity}.{capture}")
                     rec = out.gt_found / max(out.gt_evaluated, 1)
                     prec = out.det_true / max(out.det_evaluated, 1)
                     cells.append(f"{model.value[:3]} {100 * (out.scale - 1):+6.2f} "
@@ -399,11 +410,13 @@ def run() -> dict[str, float]:
     figures["fingerprint.identities"] = float(IDENTITIES)
     figures["fingerprint.captures"] = float(IDENTITIES * CAPTURES)
     figures["fingerprint.generate_s.median"] = generation_s()
+    figures.update(records.figures())
     figures.update(run_arm(extractor, {m.value: [[r.template for r in c] for c in results[m]]
                                        for m in MODELS}, truth_templates, error_rates))
     figures["fingerprint.seconds"] = time.perf_counter() - t_start
     _table(figures)
     contact_table(figures, [m.value for m in MODELS])
+    records_table(figures, [m.value for m in MODELS], records.failures)
     return figures
 
 
@@ -456,6 +469,10 @@ def _scores(model: Model, per_id: list[list[PrintResult]],
                              for a, r in enumerate(ci) for b in range(len(cj))]
     lowest = min(genuine_cc + genuine_gt)
     highest = max(impostor)
+    thresholds = nfiq2_threshold_effect(
+        f"fingerprint.{model.value}.",
+        {f"{i}.{a}": r.nfiq2 for i, c in enumerate(per_id) for a, r in enumerate(c)},
+        genuine_cc + genuine_gt, impostor, error_rates)
 
     def who(label: str) -> str:
         a, b = (int(side.split(".")[0]) for side in label.split(" v "))
@@ -500,6 +517,7 @@ def _scores(model: Model, per_id: list[list[PrintResult]],
         p + "fnmr_at_fmr1_pct": 100 * fnmr,
         p + "print_ms_median": float(np.nanmedian([r.print_ms for r in printed])),
         p + "margin_sag_ratio": float(np.nanmedian([r.sag_ratio for r in printed])),
+        **thresholds,
     }
 
 

@@ -113,3 +113,18 @@ def nfiq2_threshold_effect(prefix: str, nfiq2: dict[str, float],
         out[key + "fnmr_at_fmr01_pct"] = 100.0 * error_rates(gen, imp,
                                                              fmr_max=FMR_OPERATING)[1]
     return out
+
+
+def records_table(f: dict[str, float], models: list[str], failures: list[str]) -> None:
+    """Print the records' read-back and the NFIQ 2 thresholds' effect; name what missed."""
+    checked, back = f["fingerprint.records.checked"], f["fingerprint.records.read_back"]
+    print(f"\nrecords (HK prints): {back:.0f} of {checked:.0f} made and read back by "
+          f"independent readers, {f['fingerprint.records.ms_median']:.0f} ms a print (median)")
+    for failure in failures:
+        print(f"  MISSED: {failure}")
+    print(f"{'Scan min_nfiq2':<16}" + "".join(f"{m + ' rejected / FNMR@0.1%':>30}"
+                                             for m in models))
+    for t in NFIQ2_THRESHOLDS:
+        cells = [f"{f[f'fingerprint.{m}.nfiq2_{t}.rejected_pct']:.1f} % / "
+                 f"{f[f'fingerprint.{m}.nfiq2_{t}.fnmr_at_fmr01_pct']:.2f} %" for m in models]
+        print(f"{t:<16}" + "".join(f"{c:>30}" for c in cells))
