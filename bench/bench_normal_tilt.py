@@ -24,19 +24,24 @@ and the whole surface by
 
 Variants (each changes one thing against ``hk``):
 
-- ``hk``, ``lambert``: the pipeline as ``bench_fingerprint`` runs it (noisy burst);
+- ``hk``, ``lambert``: the pipeline as ``bench_fingerprint`` runs it (noisy burst; HK: the
+  near lights refined at the surface's points, ``ReconstructionOptions.refine_near_lights``);
 - ``hk_noiseless``: the noiseless render (plus the sensor's ambient level), unquantised;
 - ``hk_enhance_off``: the ridge enhancement (Eq. 12) off (it acts on a copy: no change
   expected);
 - ``hk_true_mask`` / ``hk_eroded_mask``: the rig's true silhouette / the finger mask eroded
   by ``ERODE_PX`` pixels, given as the mask;
+- ``hk_plane_lights``: the lights of the plane z = working distance alone (the near-light
+  model's assumption; no refinement);
 - ``hk_oracle_lights`` (diagnosis, not a calibration): the TRUE per-pixel light directions
-  and irradiance at the true surface points instead of those of the plane z = working
-  distance (the near-light model's assumption);
+  and irradiance at the true surface points instead of the plane's (no refinement);
 - ``hk_refined_lights``: the near-light directions and irradiance recomputed at the points of
-  the ``hk`` reconstruction's own depth (inverse-square law from the plane), solved again;
+  the ``hk_plane_lights`` reconstruction's own depth (inverse-square law from the plane) and
+  solved again from scratch (Lambertian start, A fitted): what the pipeline's refinement
+  does in a warm-started solve;
 - ``true_normals``: the TRUE normals integrated by the pipeline's integration on the ``hk``
-  mask (tilt error 0 by construction: the integration's and the depth placement's share).
+  mask, the nearest point at the working distance (tilt error 0 by construction: the
+  integration's and the unrolling's share).
 
 Run: ``python bench/bench_normal_tilt.py`` (~3 min); prints one table per variant.
 """
@@ -81,7 +86,8 @@ POSES = ((0, 0), (1, 0), (2, 0), (3, 0), (4, 1), (5, 2))
 BINS = (0, 10, 20, 30, 40, 50, 60, 70, 90)
 ERODE_PX = 6
 VARIANTS = ("hk", "lambert", "hk_noiseless", "hk_enhance_off", "hk_true_mask",
-            "hk_eroded_mask", "hk_oracle_lights", "hk_refined_lights", "true_normals")
+            "hk_eroded_mask", "hk_plane_lights", "hk_oracle_lights", "hk_refined_lights",
+            "true_normals")
 
 
 def tilt_deg(normals: np.ndarray) -> np.ndarray:
@@ -175,10 +181,11 @@ def run() -> None:
 
         def solve(name: str, model: Model, imgs: np.ndarray, *, enhance: bool = True,
                   mask: np.ndarray | None = None, calib: PreparedCalibration | None = None,
-                  results=results, top=top) -> None:
+                  refine: bool = True, results=results, top=top) -> None:
             results[name] = reconstruct_prepared(
                 imgs, calib or prepared[model], full_scale=top, mask=mask,
-                options=ReconstructionOptions(model=model, enhance=enhance))
+                options=ReconstructionOptions(model=model, enhance=enhance,
+                                              refine_near_lights=refine))
 
         solve("hk", Model.HK, images)
         solve("lambert", Model.LAMBERT, images)
@@ -187,15 +194,17 @@ def run() -> None:
         solve("hk_true_mask", Model.HK, images, mask=truth.mask)
         eroded = ndimage.binary_erosion(results["hk"].mask, iterations=ERODE_PX)
         solve("hk_eroded_mask", Model.HK, images, mask=eroded)
+        solve("hk_plane_lights", Model.HK, images, refine=False)
         true_depth = np.where(truth.mask, truth.depth_m, np.nan)
-        solve("hk_oracle_lights", Model.HK, images, calib=with_lights(
+        solve("hk_oracle_lights", Model.HK, images, refine=False, calib=with_lights(
             prepared[Model.HK], *lights_at(rig, prepared[Model.HK], true_depth, truth.mask,
                                            oracle=True), Model.HK))
-        base = results["hk"]
-        solve("hk_refined_lights", Model.HK, images, calib=with_lights(
-            prepared[Model.HK], *lights_at(rig, prepared[Model.HK], base.depth_m,
-                                           base.mask & np.isfinite(base.depth_m),
+        plane = results["hk_plane_lights"]
+        solve("hk_refined_lights", Model.HK, images, refine=False, calib=with_lights(
+            prepared[Model.HK], *lights_at(rig, prepared[Model.HK], plane.depth_m,
+                                           plane.mask & np.isfinite(plane.depth_m),
                                            oracle=False), Model.HK))
+        base = results["hk"]
         for name, r in results.items():
             tables[name].append(tilt_table(r.normals_ps, r.mask, truth))
             surfaces[name].append(surface_figures(rig, r.depth_m, r.mask, r.normals_ps, truth))
@@ -204,6 +213,7 @@ def run() -> None:
             np.where(inside[..., None], truth.normals_ps, 0.0), mask=inside,
             camera_matrix=rig.camera_matrix,
             working_distance_m=ReconstructionOptions().working_distance_m)
+        depth *= ReconstructionOptions().working_distance_m / np.nanmin(depth)  # as the pipeline
         tables["true_normals"].append(tilt_table(truth.normals_ps, inside, truth))
         surfaces["true_normals"].append(surface_figures(rig, depth, inside, truth.normals_ps,
                                                         truth))
