@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import TypeVar
 
+import cv2
 import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError, NoFingerError
@@ -547,15 +548,42 @@ def _lighting_at_surface(lighting: HKLighting, normals: np.ndarray, valid: np.nd
     plane, which tilts the solved normals of the margins too little and flattens the depth
     and its rolled print. The Lambertian depth is too flat as well (its normals ~4 deg too
     little tilted at the margins: ~0.5 mm of depth), but that moves the lights by ~0.1 deg,
-    a tenth of the plane's error (bench/bench_normal_tilt.py). A loose integration
-    (``_RELIGHT_TOL``) is enough for that."""
-    depth = _nearest_at(integrate_normals_perspective(
-        normals, mask=valid, camera_matrix=prepared.camera_matrix,
-        working_distance_m=options.working_distance_m, tol=_RELIGHT_TOL),
-        options.working_distance_m)
+    a tenth of the plane's error (bench/bench_normal_tilt.py). So the depth is integrated
+    loosely (``_RELIGHT_TOL``) at half resolution (:func:`_half_resolution_depth`: it
+    moves the lights by ~0.01 deg at the steepest margin) and each pixel takes its block's."""
+    depth = _half_resolution_depth(normals, valid, prepared.camera_matrix, options)
     return prepare_hk_lighting_at_depth(
         lighting, depth, mask=valid, led_positions_optical=prepared.led_positions_optical,
         plane_power=prepared.light_power, working_distance_m=options.working_distance_m)
+
+
+def _half_resolution_depth(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
+                           options: ReconstructionOptions) -> np.ndarray:
+    """(H, W) float32 depth of the normals integrated on blocks of 2 x 2 pixels (their mean
+    normal; a block is on the finger where one of its pixels is), the nearest point at the
+    working distance, each pixel given its block's depth (the last row and column of an odd
+    size their neighbours'); NaN off the finger's blocks."""
+    h, w = valid.shape
+    h2, w2 = h // 2, w // 2
+    if h2 < 2 or w2 < 2:
+        return np.full((h, w), np.nan, np.float32)
+    inside = cv2.resize(valid[: 2 * h2, : 2 * w2].view(np.uint8), (w2, h2),
+                        interpolation=cv2.INTER_AREA) > 0
+    mean = cv2.resize(np.ascontiguousarray(normals[: 2 * h2, : 2 * w2]), (w2, h2),
+                      interpolation=cv2.INTER_AREA)  # zeros off the finger: shorter, same way
+    half = k_matrix.copy()
+    half[:2] /= 2.0
+    half[:2, 2] -= 0.25  # pixel (u, v) of the blocks is pixel (2 u + 1/2, 2 v + 1/2)
+    depth2 = _nearest_at(integrate_normals_perspective(
+        mean, mask=inside, camera_matrix=half, working_distance_m=options.working_distance_m,
+        tol=_RELIGHT_TOL), options.working_distance_m)
+    depth = np.empty((h, w), np.float32)
+    depth[: 2 * h2, : 2 * w2] = np.repeat(np.repeat(depth2, 2, axis=0), 2, axis=1)
+    if h % 2:
+        depth[-1] = depth[-2]
+    if w % 2:
+        depth[:, -1] = depth[:, -2]
+    return depth
 
 
 def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
