@@ -43,6 +43,15 @@ Variants (each changes one thing against ``hk``):
   mask, the nearest point at the working distance (tilt error 0 by construction: the
   integration's and the unrolling's share).
 
+Findings (issue 23; 6 poses, HK): with the depth's geometric mean at the working distance
+(the pipeline before) even the TRUE normals gave a print 2.1 % small (depth 0.982 of the
+true one): the depth's placement, now its nearest point at the working distance. On the
+plane's lights the HK normals are too little tilted by 0.6-1.0 deg where the true tilt is
+30-70 deg (scale +0.71 % once placed); the noise-free render, the enhancement and the mask
+(true, eroded) change nothing, the TRUE lights at the true points remove it (-0.15 deg,
++0.30 %): the near-light model's plane. With the lights moved to the Lambertian depth's
+points (the pipeline now) -0.26 deg at most, +0.36 %.
+
 Run: ``python bench/bench_normal_tilt.py`` (~3 min); prints one table per variant.
 """
 
