@@ -24,19 +24,32 @@ Figures per model (``fingerprint.<model>.*``):
 - geometric fidelity: every print pixel's source pixel (``source_x/y``) carries the true
   rolled-plane position of the skin it sees (``FingerTruth.rolled_mm``, bilinear); a
   similarity transform print mm -> rolled mm (rotation, isotropic scale, shift; no
-  reflection, Umeyama 1991) is fitted by least squares: ``scale_err_pct_*`` = |s - 1|
-  (median, max; target <= 2 %), ``residual_mm_median`` the median distance left. An
+  reflection, Umeyama 1991) is fitted by least squares: ``scale_err_pct_*`` = 100 |s - 1|
+  (median, max; target median <= 0.5 %), ``residual_mm_median`` the median distance left. An
   unconstrained affine fit with a negative determinant would mean a mirrored print:
   ``mirrored_prints`` counts them (0 expected);
+- scale per region: the TRUE rolled plane cut into cells of ``REGION_MM`` (4 mm) square
+  (from the pattern grid's corner); the print pixels showing a cell's skin, when they cover
+  at least ``REGION_MIN_FILL`` (half) of it, are fitted alone by the same similarity, giving
+  the cell's scale s_c. ``scale_err_pct_region_abs_max`` / ``_abs_p95``: 100 |s_c - 1|,
+  worst cell of all the prints / 95th percentile over them. That holds the unrolling's own
+  local strain: a fingertip's doubly curved cap has no isometric map to a plane, and the
+  springs' layout and the generator's rolled plane (arc lengths around and along the
+  finger) are two different maps of it, ~1.5 % apart in the middle and at the sides even
+  for the TRUE surface (``fingerprint.truth_surface.scale_err_pct_region_max``, capture 0
+  of each finger). So the target (<= 1 %) is on the reconstruction's own share:
+  ``scale_err_pct_region_max`` / ``_p95``: 100 |s_c / t_c - 1|, with t_c the same cell's
+  scale on the print of the TRUE surface of the same capture (``true_surface_cells``),
+  worst cell / 95th percentile; ``regions`` the cells compared;
 - minutiae: mindtct's minutiae on the print, each taken to the true rolled position of its
   pixel, against the generator's ground truth within ``MATCH_MM`` (0.3 mm). Evaluated: the
   print less ``BORDER_MM`` (1 mm) along its outline, and the generator's area where it keeps
   ground truth (its print less 1 mm, 1.5 mm from singular points). ``recall`` = evaluated
   ground truth with a detection within 0.3 mm, ``precision`` = evaluated detections with a
-  ground truth within 0.3 mm (pooled over the captures; target >= 85 % each);
+  ground truth within 0.3 mm (pooled over the captures; target >= 95 % each);
   ``minutia_err_mm_median``: matched pairs, the detection through the fitted similarity vs
   its ground truth (detection error and the unrolling's distortion together);
-- ``nfiq2_median``, ``nfiq2_p10`` (target median >= 50);
+- ``nfiq2_median``, ``nfiq2_p10`` (target median >= 55);
 - bozorth3: genuine = capture vs capture of one finger (3 pairs a finger) and capture vs
   the finger's ground-truth rolled print (``rig.rolled_print()``); impostor = every capture
   vs every capture of another finger (1710) and vs every other finger's ground truth (1140).
@@ -48,7 +61,8 @@ Figures per model (``fingerprint.<model>.*``):
   500 ppi), median of ``GENERATIONS`` runs;
 - diagnosis of the scale: ``fingerprint.truth_surface.scale_err_pct_median``, the same fit
   for prints of the rig's TRUE depth and normals (capture 0 of each finger: the unrolling's
-  own share), and ``margin_sag_ratio``, the reconstructed depth's sag below the apex over
+  own share; ``...truth_surface.scale_err_pct_region_max`` its worst region), and
+  ``margin_sag_ratio``, the reconstructed depth's sag below the apex over
   the true one where the finger is tilted more than 40 deg (< 1: flatter).
 
 Contact-print arm (``fingerprint_contact_arm``; issue 23, item 2): per finger ``CONTACTS``
@@ -128,7 +142,10 @@ MARGIN_TILT_DEG = 40.0
 GENERATIONS = 3
 MODELS = (Model.HK, Model.LAMBERT)
 SEED = 12
-TARGETS = {"scale_err_pct_median": 2.0, "recall": 0.85, "precision": 0.85, "nfiq2_median": 50}
+REGION_MM = 4.0
+REGION_MIN_FILL = 0.5
+TARGETS = {"scale_err_pct_median": 0.5, "scale_err_pct_region_max": 1.0, "recall": 0.95,
+           "precision": 0.95, "nfiq2_median": 55}
 
 
 @dataclass(frozen=True)
@@ -155,6 +172,8 @@ class PrintResult:
     minutia_err_mm: list[float] = field(default_factory=list)
     print_ms: float = float("nan")
     sag_ratio: float = float("nan")
+    cells: dict[tuple[int, int], float] = field(default_factory=dict)
+    truth_cells: dict[tuple[int, int], float] = field(default_factory=dict)
     error: str = ""
 
 
@@ -241,6 +260,34 @@ def true_surface_scale(rig: SimulatedRig, truth) -> float:
     return print_scale(fp, truth.rolled_mm)[0]
 
 
+def region_scales(print_mm: np.ndarray, true_mm: np.ndarray, ppmm: float
+                  ) -> dict[tuple[int, int], float]:
+    """Scale s of the similarity (``similarity``) print mm (N, 2) -> true rolled mm (N, 2)
+    fitted per ``REGION_MM`` cell of the true rolled plane whose print pixels cover at
+    least ``REGION_MIN_FILL`` of it: {(cell x, cell y): s}."""
+    cell = np.floor(true_mm / REGION_MM).astype(np.int64)
+    keys, inverse, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
+    order = np.argsort(inverse.reshape(-1), kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    enough = REGION_MIN_FILL * (REGION_MM * ppmm) ** 2
+    return {(int(keys[i, 0]), int(keys[i, 1])):
+            similarity(print_mm[idx], true_mm[idx])[0]
+            for i in range(len(keys)) if counts[i] >= enough
+            for idx in [order[starts[i]:starts[i + 1]]]}
+
+
+def true_surface_cells(rig: SimulatedRig, truth) -> dict[tuple[int, int], float]:
+    """``region_scales`` of the print of the rig's TRUE surface (depth and normals)."""
+    fp = rolled_print(truth.depth_m, mask=truth.mask, camera_matrix=rig.camera_matrix,
+                      normals_ps=truth.normals_ps)
+    known_truth = true_rolled_at_print(fp, truth.rolled_mm)
+    known = np.isfinite(known_truth).all(axis=-1)
+    rows, cols = np.nonzero(known)
+    print_mm = np.stack([fp.origin_mm[0] + cols / fp.px_per_mm,
+                         fp.origin_mm[1] + rows / fp.px_per_mm], axis=1)
+    return region_scales(print_mm, known_truth[known].astype(np.float64), fp.px_per_mm)
+
+
 def margin_sag_ratio(depth_m: np.ndarray, mask: np.ndarray, truth) -> float:
     """Median ratio of the reconstructed to the true sag (depth below the apex, the true
     surface's nearest pixel) where the true surface is tilted more than
@@ -272,6 +319,7 @@ def measure(result: RolledPrint, rolled_mm: np.ndarray, pattern: FingerprintPatt
         print_mm @ (scale * rot).T + shift - dst, axis=1)))
     affine = np.linalg.lstsq(np.c_[print_mm, np.ones(len(print_mm))], dst, rcond=None)[0]
     out.mirrored = bool(np.linalg.det(affine[:2]) < 0.0)
+    out.cells = region_scales(print_mm, dst, ppmm)
 
     # Where the print can be judged: its mask less BORDER_MM along the outline.
     inner = ndimage.distance_transform_edt(np.pad(known, 1))[1:-1, 1:-1] / ppmm > BORDER_MM
@@ -341,6 +389,7 @@ def run() -> dict[str, float]:
     results: dict[Model, list[list[PrintResult]]] = {m: [] for m in MODELS}
     truth_templates, truth_nfiq2, truth_minutiae = [], [], []
     surface_scales: list[float] = []
+    surface_regions: list[float] = []  # 100 |t_c - 1| of the true surfaces' cells
     fingers: list[str] = []  # class and ground-truth minutiae of each finger
     records = RecordsCheck()  # the HK prints' records, read back
     print(f"{IDENTITIES} fingers x {CAPTURES} captures; poses roll +-{ROLL_DEG:g}, yaw "
@@ -368,10 +417,13 @@ def run() -> dict[str, float]:
                 truth_minutiae.append(compare_minutiae(pattern, card.get()))
                 fingers.append(f"{pattern.pattern_class.value}, {len(pattern.minutiae)} "
                                "minutiae")
+            truth_cells = true_surface_cells(rig, truth)
+            if capture == 0:
+                surface_regions += [100 * abs(t - 1) for t in truth_cells.values()]
             rig_s = time.perf_counter() - t0
             cells = []
             for model in MODELS:
-                out = PrintResult()
+                out = PrintResult(truth_cells=truth_cells)
                 try:
                     recon, fp = reconstructed_print(rig, images, prepared[model], model)
                 except RolledPrintError as error:
@@ -404,6 +456,8 @@ def run() -> dict[str, float]:
     figures["fingerprint.truth.nfiq2_median"] = float(np.median(truth_nfiq2))
     figures["fingerprint.truth_surface.scale_err_pct_median"] = float(
         100 * np.median(surface_scales))
+    figures["fingerprint.truth_surface.scale_err_pct_region_max"] = float(
+        np.max(surface_regions))
     for key in ("recall", "precision"):
         figures[f"fingerprint.truth.{key}_median"] = float(
             np.median([t[key] for t in truth_minutiae]))
@@ -488,6 +542,9 @@ def _scores(model: Model, per_id: list[list[PrintResult]],
     impostor = np.array([g for g, _ in impostor])
     eer, fnmr = error_rates(genuine, impostor)
     scale_err = 100 * np.abs(np.array([r.scale for r in printed]) - 1.0)
+    cells_abs = np.array([100 * abs(v - 1) for r in printed for v in r.cells.values()])
+    regions = np.array([100 * abs(v / r.truth_cells[c] - 1) for r in printed
+                        for c, v in r.cells.items() if c in r.truth_cells])
     errors = [e for r in printed for e in r.minutia_err_mm]
     nfiq2 = np.array([r.nfiq2 for r in printed])
     p = f"fingerprint.{model.value}."
@@ -498,6 +555,11 @@ def _scores(model: Model, per_id: list[list[PrintResult]],
         p + "scale_err_pct_median": float(np.median(scale_err)),
         p + "scale_err_pct_max": float(np.max(scale_err)),
         p + "scale_pct_mean": float(100 * (np.mean([r.scale for r in printed]) - 1.0)),
+        p + "scale_err_pct_region_max": float(np.max(regions)),
+        p + "scale_err_pct_region_p95": float(np.percentile(regions, 95)),
+        p + "regions": float(len(regions)),
+        p + "scale_err_pct_region_abs_max": float(np.max(cells_abs)),
+        p + "scale_err_pct_region_abs_p95": float(np.percentile(cells_abs, 95)),
         p + "residual_mm_median": float(np.median([r.residual_mm for r in printed])),
         p + "minutia_err_mm_median": float(np.median(errors)) if errors else float("nan"),
         p + "recall": sum(r.gt_found for r in printed) / max(
@@ -529,6 +591,10 @@ def _table(f: dict[str, float]) -> None:
         ("scale error % median / max", "scale_err_pct_median", "scale_err_pct_max",
          "{:.2f} / {:.2f}"),
         ("mean scale - 1, %", "scale_pct_mean", None, "{:+.2f}"),
+        (f"scale error % per {REGION_MM:g} mm region p95 / max", "scale_err_pct_region_p95",
+         "scale_err_pct_region_max", "{:.2f} / {:.2f}"),
+        ("  (the same, absolute: unrolling included)", "scale_err_pct_region_abs_p95",
+         "scale_err_pct_region_abs_max", "{:.2f} / {:.2f}"),
         ("registration residual mm (median)", "residual_mm_median", None, "{:.3f}"),
         ("minutia position error mm (median)", "minutia_err_mm_median", None, "{:.3f}"),
         ("minutiae recall / precision", "recall", "precision", "{:.3f} / {:.3f}"),
@@ -555,7 +621,8 @@ def _table(f: dict[str, float]) -> None:
           f"{f['fingerprint.truth.nfiq2_median']:.0f}, mindtct recall / precision median "
           f"{f['fingerprint.truth.recall_median']:.2f} / "
           f"{f['fingerprint.truth.precision_median']:.2f}; prints of the true surfaces: "
-          f"scale error median {f['fingerprint.truth_surface.scale_err_pct_median']:.2f} %; "
+          f"scale error median {f['fingerprint.truth_surface.scale_err_pct_median']:.2f} %, "
+          f"worst region {f['fingerprint.truth_surface.scale_err_pct_region_max']:.2f} %; "
           f"one finger generated in {f['fingerprint.generate_s.median']:.2f} s (median); "
           f"{f['fingerprint.seconds']:.0f} s in all")
     for m in MODELS:
@@ -563,8 +630,10 @@ def _table(f: dict[str, float]) -> None:
         misses = []
         if f[p + "scale_err_pct_median"] > TARGETS["scale_err_pct_median"]:
             misses.append(
-                f"scale error {f[p + 'scale_err_pct_median']:.2f} % > 2 % (by "
-                f"{f[p + 'scale_err_pct_median'] - 2:.2f} points; the print comes out "
+                f"scale error {f[p + 'scale_err_pct_median']:.2f} % > "
+                f"{TARGETS['scale_err_pct_median']:g} % (by "
+                f"{f[p + 'scale_err_pct_median'] - TARGETS['scale_err_pct_median']:.2f} "
+                "points; the print comes out "
                 f"{f[p + 'scale_pct_mean']:.1f} % small): the prints of the TRUE surfaces "
                 f"are within {f['fingerprint.truth_surface.scale_err_pct_median']:.2f} % (the "
                 "unrolling's share), so the rest is the reconstructed depth (the integrated "
@@ -572,15 +641,23 @@ def _table(f: dict[str, float]) -> None:
                 f"than {MARGIN_TILT_DEG:.0f} deg is {f[p + 'margin_sag_ratio']:.3f} of the "
                 "true one, so its arcs are shorter (and the normals are as flat there: "
                 "unrolling from their slopes instead of the depth gives the same scale)")
+        if f[p + "scale_err_pct_region_max"] > TARGETS["scale_err_pct_region_max"]:
+            misses.append(
+                f"worst region's scale error {f[p + 'scale_err_pct_region_max']:.2f} % > "
+                f"{TARGETS['scale_err_pct_region_max']:g} % (p95 "
+                f"{f[p + 'scale_err_pct_region_p95']:.2f} %; against the true rolled plane "
+                f"itself {f[p + 'scale_err_pct_region_abs_max']:.2f} %, the true surfaces' "
+                f"own {f['fingerprint.truth_surface.scale_err_pct_region_max']:.2f} %)")
         for key in ("recall", "precision"):
             if f[p + key] < TARGETS[key]:
                 misses.append(
-                    f"{key} {100 * f[p + key]:.1f} % < 85 % (short by "
+                    f"{key} {100 * f[p + key]:.1f} % < {100 * TARGETS[key]:.0f} % (short by "
                     f"{100 * (TARGETS[key] - f[p + key]):.1f} points; mindtct on the "
                     "ground-truth prints themselves: "
                     f"{100 * f[f'fingerprint.truth.{key}_median']:.0f} %)")
         if f[p + "nfiq2_median"] < TARGETS["nfiq2_median"]:
-            misses.append(f"NFIQ 2 median {f[p + 'nfiq2_median']:.0f} < 50 (the ground-truth "
+            misses.append(f"NFIQ 2 median {f[p + 'nfiq2_median']:.0f} < "
+                          f"{TARGETS['nfiq2_median']} (the ground-truth "
                           f"prints: {f['fingerprint.truth.nfiq2_median']:.0f})")
         genuine_min = min(f[p + "genuine_cc_min"], f[p + "genuine_truth_min"])
         if genuine_min <= f[p + "impostor_max"]:

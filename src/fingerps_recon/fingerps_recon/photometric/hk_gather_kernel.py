@@ -1,6 +1,7 @@
 """The inputs of the HK solver's compiled (numba) passes (paper Eq. 4, 6-7): the lighting
 of a calibration per pixel and light (:func:`lighting_terms`: the unit light direction, the
-light's relative intensity e_k, and e_k times the phase function p(c, g) of Eq. 4), and a
+light's relative intensity e_k, and e_k times the phase function p(c, g) of Eq. 4; near
+lights at the points of a depth map: :func:`near_lighting_terms`), and a
 burst's pixels gathered into the passes' layout (:func:`gather`, chunk by chunk
 :func:`gather_chunk`), both as :mod:`photometric.hk_model_kernel` describes them."""
 
@@ -36,6 +37,8 @@ from fingerps_recon.photometric.kernel_compile import (
 
 # Unsigned indices: numba then needs no wrap-around of negative ones, and LLVM vectorises.
 _U = numba.uint64
+# Blocks of chunks near_lighting_terms' threads take (each block's scratch allocated once).
+_BLOCKS = 32
 
 
 @parallel_kernel
@@ -86,6 +89,118 @@ def lighting_terms(pixels, lights, views, intensity, hg, physical, terms, v_out,
                 terms[k, G, q] = e * phase if usable else zero
                 terms[k, E, q] = e if usable else zero
             bad[q] = np.uint8(flag)
+
+
+@parallel_kernel
+def near_lighting_terms(pixels, depth, leds, plane_power, working, views, view_index, hg,
+                        physical, terms, v_out, bad):
+    """:func:`lighting_terms` of near point lights at the surface points of a depth map: for
+    the image pixels ``pixels`` (Q,), the point P = z r on the pixel's ray r at the depth
+    z = ``depth`` (H*W,) float32 (the plane z = ``working`` where it is not finite or
+    <= 0), the unit direction from P towards each LED ``leds`` (K, 3) (optical frame,
+    written in the PS frame) and its irradiance, ``plane_power`` (K, H*W) or (K, 1)
+    float32 (the irradiance on the plane z = ``working``) moved from the plane's point to P
+    by the inverse-square law (the LED's emission lobe taken as constant over the move).
+    The view of pixel p is column ``view_index[p]`` of ``views`` (3, .) float32 (a
+    perspective lighting's ``v_out``: the unit vector towards the camera, minus the ray, in
+    the PS frame), and so is its ray: r = (-v_x, v_y, v_z) / v_z (optical frame, z = 1).
+    The other arguments and the outputs as :func:`lighting_terms`. float32 arithmetic, the
+    lights' loops over a chunk's pixels (vectorised)."""
+    count = pixels.shape[0]
+    k_count = terms.shape[0]
+    hg_a, hg_b, hg_num, four_pi = hg[0], hg[1], hg[2], hg[3]
+    per_pixel_power = plane_power.shape[1] > 1
+    sign = np.float32(-1.0) if physical else np.float32(1.0)
+    one, zero = np.float32(1.0), np.float32(0.0)
+    f32 = np.float32
+    wd = f32(working)
+    chunks = (count + CHUNK - 1) // CHUNK
+    blocks = min(chunks, _BLOCKS)
+    for block in prange(blocks):
+        # A block's scratch (allocated once: allocations in a parallel loop are costly),
+        # then its chunks, every ``blocks``-th: the chunk's points and the plane's, and
+        # views; then per light, loops that each write one array, with unsigned indices, so
+        # that LLVM vectorises them (as gather_chunk's).
+        ptx = np.empty(CHUNK, np.float32)
+        pty = np.empty(CHUNK, np.float32)
+        ptz = np.empty(CHUNK, np.float32)
+        plx = np.empty(CHUNK, np.float32)
+        ply = np.empty(CHUNK, np.float32)
+        plz = np.empty(CHUNK, np.float32)
+        vx = np.empty(CHUNK, np.float32)
+        vy = np.empty(CHUNK, np.float32)
+        vz = np.empty(CHUNK, np.float32)
+        power_at = np.empty(CHUNK, np.int64)
+        inv = np.empty(CHUNK, np.float32)
+        ratio = np.empty(CHUNK, np.float32)
+        power = np.empty(CHUNK, np.float32)
+        cos = np.empty(CHUNK, np.float32)
+        flags = np.empty(CHUNK, np.uint8)
+        for chunk in range(block, chunks, blocks):
+            q0 = chunk * CHUNK
+            m = _U(min(q0 + CHUNK, count) - q0)
+            for i in range(m):  # gathers
+                p = pixels[q0 + i]
+                pv = view_index[p]
+                vx[i], vy[i], vz[i] = views[0, pv], views[1, pv], views[2, pv]
+                z = depth[p]
+                inv[i] = f32(z) if (math.isfinite(z) and z > 0.0) else wd  # (the depth here)
+                power_at[i] = p if per_pixel_power else 0
+            for i in range(m):
+                a, b, c = vx[i], vy[i], vz[i]
+                v_out[0, q0 + i], v_out[1, q0 + i], v_out[2, q0 + i] = a, b, c
+                norm = np.sqrt(a * a + b * b + c * c)
+                flag = 0 if norm - norm == 0 else BAD_VIEW  # (not inf, not nan)
+                flags[i] = flag if (norm != 0) & (c > zero) else ZERO_VIEW
+            for i in range(m):  # the ray (z = 1), the plane's point and the surface's
+                c = vz[_U(i)]
+                c = c if c > zero else one
+                x, y = -vx[_U(i)] / c, vy[_U(i)] / c
+                z = inv[_U(i)]
+                plx[_U(i)], ply[_U(i)], plz[_U(i)] = wd * x, wd * y, wd
+                ptx[_U(i)], pty[_U(i)], ptz[_U(i)] = z * x, z * y, z
+            for k in range(k_count):
+                lx0, ly0, lz0 = f32(leds[k, 0]), f32(leds[k, 1]), f32(leds[k, 2])
+                out_x, out_y, out_z = terms[k, LX, q0:], terms[k, LY, q0:], terms[k, LZ, q0:]
+                out_g, out_e = terms[k, G, q0:], terms[k, E, q0:]
+                source = plane_power[k]
+                for i in range(m):
+                    power[_U(i)] = source[power_at[_U(i)]]
+                for i in range(m):
+                    dx = lx0 - ptx[_U(i)]
+                    dy = ly0 - pty[_U(i)]
+                    dz = lz0 - ptz[_U(i)]
+                    inv[_U(i)] = one / np.sqrt(dx * dx + dy * dy + dz * dz)
+                for i in range(m):  # (plane distance / distance)^2
+                    dx = lx0 - plx[_U(i)]
+                    dy = ly0 - ply[_U(i)]
+                    dz = lz0 - plz[_U(i)]
+                    r = inv[_U(i)]
+                    ratio[_U(i)] = (dx * dx + dy * dy + dz * dz) * (r * r)
+                # optical -> PS frame (x, -y, -z)
+                for i in range(m):
+                    out_x[_U(i)] = (lx0 - ptx[_U(i)]) * inv[_U(i)]
+                for i in range(m):
+                    out_y[_U(i)] = (pty[_U(i)] - ly0) * inv[_U(i)]
+                for i in range(m):
+                    out_z[_U(i)] = (ptz[_U(i)] - lz0) * inv[_U(i)]
+                for i in range(m):
+                    power[_U(i)] = power[_U(i)] * ratio[_U(i)]
+                for i in range(m):
+                    e = power[_U(i)]
+                    out_e[_U(i)] = e if (e - e == zero) & (e > zero) else zero
+                for i in range(m):
+                    c_sc = sign * (out_x[_U(i)] * vx[_U(i)] + out_y[_U(i)] * vy[_U(i)]
+                                   + out_z[_U(i)] * vz[_U(i)])
+                    cos[_U(i)] = fmin(fmax(c_sc, -one), one)
+                for i in range(m):
+                    denom = hg_a - hg_b * cos[_U(i)]
+                    out_g[_U(i)] = out_e[_U(i)] * (hg_num / (four_pi * denom * np.sqrt(denom)))
+                if not (lx0 - lx0 == zero and ly0 - ly0 == zero and lz0 - lz0 == zero):
+                    for i in range(m):
+                        flags[i] |= BAD_LIGHT
+            for i in range(m):
+                bad[q0 + i] = flags[i]
 
 
 @parallel_kernel

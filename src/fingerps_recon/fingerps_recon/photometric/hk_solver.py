@@ -238,6 +238,66 @@ def prepare_hk_lighting(
                       views=v_out, bad=bad)
 
 
+def prepare_hk_lighting_at_depth(
+    lighting: HKLighting,
+    depth_m: np.ndarray,
+    *,
+    mask: np.ndarray,
+    led_positions_optical: np.ndarray,
+    plane_power: np.ndarray | None,
+    working_distance_m: float,
+) -> HKLighting:
+    """The near lights of ``lighting`` (prepared for the plane z = ``working_distance_m``,
+    :func:`photometric.pixel_rays.near_light_directions_ps`, with perspective views) moved
+    to the surface points of a depth map, for the pixels of ``mask``: per pixel the
+    direction from the point at ``depth_m`` (H, W) (optical z, metres; the plane's point
+    where it is not finite) on the pixel's ray (minus its view) towards each LED
+    ``led_positions_optical`` (K, 3) (metres, optical frame),
+    and ``plane_power`` (K, H, W) or (K,) (the irradiance on the plane, e.g. the white
+    target's; None: all ones) moved there by the inverse-square law
+    (:func:`photometric.hk_gather_kernel.near_lighting_terms`). The views and the skin
+    constants are ``lighting``'s. One compiled pass over the mask's pixels: cheap enough
+    per burst, for a second solve once the depth is known."""
+    h, w = lighting.shape
+    k = lighting.light_count
+    leds = np.ascontiguousarray(led_positions_optical, dtype=np.float64)
+    if leds.shape != (k, 3) or not np.isfinite(leds).all():
+        raise FingerpsReconError(
+            f"LED positions must be {k} finite points (K, 3), got shape {leds.shape}")
+    if np.shape(depth_m) != (h, w):
+        raise FingerpsReconError(f"depth {np.shape(depth_m)} does not fit the lighting's "
+                                 f"{w} x {h} px")
+    if plane_power is None:
+        power = np.ones((k, 1), np.float32)
+    else:
+        power = np.asarray(plane_power, dtype=np.float32)
+        if power.shape not in ((k,), (k, h, w)):
+            raise FingerpsReconError(f"irradiance {power.shape} fits neither ({k},) nor "
+                                     f"({k}, {h}, {w})")
+        power = np.ascontiguousarray(power.reshape(k, -1))
+    pixels = np.flatnonzero(checked_mask(mask, (h, w))).astype(np.int64)
+    if np.any(lighting.index[pixels] < 0):
+        raise FingerpsReconError(
+            "the mask holds pixels the lighting was not prepared for: prepare it for the "
+            "whole image (prepare_hk_lighting without a mask)")
+    index = np.full(h * w, -1, np.int64)
+    index[pixels] = np.arange(pixels.size)
+    kernels = _kernels()
+    f32 = np.float32
+    g = f32(lighting.params.g)
+    hg = np.array([1 + g * g, 2 * g, 1 - g * g, f32(4 * math.pi)], f32)
+    terms = np.empty((k, kernels.model.N_TERMS, pixels.size), f32)
+    v_out = np.empty((3, pixels.size), f32)
+    bad = np.empty(pixels.size, np.uint8)
+    with numba_threads():
+        kernels.gather.near_lighting_terms(
+            pixels, _float_array(depth_m, (h * w,)), leds, power, float(working_distance_m),
+            lighting.views, lighting.index, hg,
+            lighting.params.phase is PhaseConvention.PHYSICAL, terms, v_out, bad)
+    return HKLighting(shape=(h, w), light_count=k, params=lighting.params, index=index,
+                      terms=terms, views=v_out, bad=bad)
+
+
 def solve_hk(
     images: np.ndarray,
     lights: np.ndarray,

@@ -44,5 +44,6 @@ RIDGE_GAIN = ParameterRow(
     "k", NODE_OPTIONS.k, "Ridge enhancement gain", min_value=0.0, max_value=20.0)
 WORKING_DISTANCE = ParameterRow(
     "working_distance", NODE_OPTIONS.working_distance_m,
-    "Camera-to-finger distance along the optical axis, metres (metric scale of depth)",
+    "Camera-to-finger distance along the optical axis (to the finger's nearest point), metres "
+    "(metric scale of depth: its nearest point is put there)",
     min_value=0.005, max_value=2.0)

@@ -2,8 +2,10 @@
 
 Steps: dark-frame subtraction; the lighting field; the finger mask; Lambertian photometric
 stereo (paper Eq. 3); optionally the simplified Hanrahan-Krueger solver (Eq. 4-7)
-initialised from it; ridge enhancement (Eq. 12) on a copy; integration of the normals into
-depth; back-projection into points in the optical frame.
+initialised from it (with near lights, at the points of the surface the Lambertian normals
+integrate to: ``ReconstructionOptions.refine_near_lights``); ridge enhancement (Eq. 12) on a
+copy; integration of the normals into depth, its nearest point at the working distance;
+back-projection into points in the optical frame.
 
 Two light models:
 
@@ -14,7 +16,11 @@ Two light models:
   (:mod:`fingerps_recon.photometric.pixel_rays`), and per-pixel irradiance from the white target
   (W_k, rebuilt from the portion maps and relative intensities, divided by the target's
   cosine l_k . z) instead of dividing the images. On the simulated rig this halves the HK
-  solver's error (bench/bench_recon_accuracy.py).
+  solver's error (bench/bench_recon_accuracy.py). The plane is right at the finger's apex
+  only; for the HK solve the directions and irradiance (inverse-square law) are moved to
+  the points of the Lambertian normals' depth, which keeps the steep margins' normals
+  tilted as much as the skin (bench/bench_normal_tilt.py; issue 23: the rolled print's
+  scale).
 
 Views are perspective (per pixel, from the camera matrix) or orthographic (0, 0, 1).
 """
@@ -29,13 +35,19 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import TypeVar
 
+import cv2
 import numpy as np
 
 from fingerps_recon.errors import FingerpsReconError, NoFingerError
 from fingerps_recon.heap_retention import retain_freed_memory
 from fingerps_recon.photometric.finger_mask import finger_mask
 from fingerps_recon.photometric.flat_field import flat_field_gain
-from fingerps_recon.photometric.hk_solver import HKLighting, prepare_hk_lighting, solve_hk_prepared
+from fingerps_recon.photometric.hk_solver import (
+    HKLighting,
+    prepare_hk_lighting,
+    prepare_hk_lighting_at_depth,
+    solve_hk_prepared,
+)
 from fingerps_recon.photometric.lambertian import LightRows, light_rows, solve_lambertian
 from fingerps_recon.photometric.normal_transform import enhance_ridges
 from fingerps_recon.photometric.pixel_rays import near_light_directions_ps, view_directions_ps
@@ -51,6 +63,9 @@ _UNIT_TOLERANCE = 1e-3
 # it the directions are (nearly) coplanar or parallel and the normals are not determined
 # (the simulated rig's ratio is 0.31).
 _MIN_LIGHT_CONDITION = 0.02
+# Relative residual of the integration whose depth the near lights are moved to: the lights
+# need the depth to ~0.1 mm, not the ridges (FAST's default is 3e-3).
+_RELIGHT_TOL = 3e-2
 
 _T = TypeVar("_T")
 # The thread the ridge enhancement runs on beside the integration (serial kernels only:
@@ -96,9 +111,19 @@ class ReconstructionOptions:
     saturation_fraction: float = 0.995
     """Values at or above this fraction of full scale count as saturated (left out)."""
     enhance: bool = False
+    refine_near_lights: bool = True
+    """HK model with near lights (LED positions known; perspective): the HK solver's lights
+    are moved from the plane z = working distance to the points of the surface the
+    Lambertian normals integrate to (:func:`reconstruct_prepared`). The plane's lights tilt
+    the normals of the finger's falling margins too little (by ~1 deg at 40-70 deg of
+    tilt), which flattens the depth and shrinks its rolled print
+    (bench/bench_normal_tilt.py)."""
     w: int = 7
     k: float = 2.5
     working_distance_m: float = 0.09
+    """Distance of the finger's nearest point (its apex) from the camera along the optical
+    axis, metres: the plane of the near-light model, and the metric scale of the depth (its
+    nearest point is put there)."""
 
 
 @dataclass(frozen=True)
@@ -144,6 +169,9 @@ class PreparedCalibration:
     hk_lighting : HKLighting or None
         The lights, views and intensities in the HK solver's layout
         (:func:`photometric.hk_solver.prepare_hk_lighting`), when prepared for the HK model.
+    led_positions_optical : None or (K, 3) float64
+        The LED positions, metres, optical frame, for near lights (the lights' refinement at
+        the surface's points, ``ReconstructionOptions.refine_near_lights``).
     """
 
     shape: tuple[int, int]
@@ -154,6 +182,7 @@ class PreparedCalibration:
     views: np.ndarray
     lambert_rows: LightRows
     hk_lighting: HKLighting | None = None
+    led_positions_optical: np.ndarray | None = None
 
     @property
     def light_count(self) -> int:
@@ -219,7 +248,9 @@ def prepare_calibration(
         shape=(h, w), camera_matrix=k_matrix, lights=lights, light_power=light_power,
         flat_gain=flat_gain, views=views,
         lambert_rows=light_rows(lights, shape=(h, w), intensities=light_power),
-        hk_lighting=hk_lighting)
+        hk_lighting=hk_lighting,
+        led_positions_optical=(None if led_positions_optical is None else np.array(
+            led_positions_optical, dtype=np.float64)))
 
 
 def reconstruct(
@@ -344,6 +375,11 @@ def reconstruct_prepared(
         t1 = time.perf_counter()
         lighting = prepared.hk_lighting or prepare_hk_lighting(
             lights, shape=shape, views=prepared.views, intensities=light_power)
+        if (options.refine_near_lights and prepared.led_positions_optical is not None
+                and options.projection is Projection.PERSPECTIVE and lights.ndim == 4
+                and valid.any()):
+            lighting = _lighting_at_surface(lighting, normals, valid, prepared, options)
+            timings["relight"] = (time.perf_counter() - t1) * 1e3
         usable = usable_measurements(stack, shadow_level, limit)
         hk = solve_hk_prepared(stack, lighting, mask=valid, init_normals=normals,
                                init_albedo=albedo, usable=usable, scale=hk_initial_scale,
@@ -500,23 +536,91 @@ def _irradiance(portions: np.ndarray, intensities: np.ndarray | None,
     return white / np.maximum(lights[..., 2], _MIN_TARGET_COSINE)
 
 
+def _lighting_at_surface(lighting: HKLighting, normals: np.ndarray, valid: np.ndarray,
+                         prepared: PreparedCalibration, options: ReconstructionOptions
+                         ) -> HKLighting:
+    """The HK solver's near lights moved from the plane z = working distance to the points
+    of the surface that ``normals`` (the Lambertian solution) integrate to, the nearest at
+    the working distance (:func:`photometric.hk_solver.prepare_hk_lighting_at_depth`).
+
+    The plane's lights are right at the apex only: where the finger falls away from it
+    (4 mm at 60 deg of tilt) each LED is seen ~1 deg nearer the optical axis than on the
+    plane, which tilts the solved normals of the margins too little and flattens the depth
+    and its rolled print. The Lambertian depth is too flat as well (its normals ~4 deg too
+    little tilted at the margins: ~0.5 mm of depth), but that moves the lights by ~0.1 deg,
+    a tenth of the plane's error (bench/bench_normal_tilt.py). So the depth is integrated
+    loosely (``_RELIGHT_TOL``) at half resolution (:func:`_half_resolution_depth`: it
+    moves the lights by ~0.01 deg at the steepest margin) and each pixel takes its block's."""
+    depth = _half_resolution_depth(normals, valid, prepared.camera_matrix, options)
+    return prepare_hk_lighting_at_depth(
+        lighting, depth, mask=valid, led_positions_optical=prepared.led_positions_optical,
+        plane_power=prepared.light_power, working_distance_m=options.working_distance_m)
+
+
+def _half_resolution_depth(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
+                           options: ReconstructionOptions) -> np.ndarray:
+    """(H, W) float32 depth of the normals integrated on blocks of 2 x 2 pixels (their mean
+    normal; a block is on the finger where one of its pixels is), the nearest point at the
+    working distance, each pixel given its block's depth (the last row and column of an odd
+    size their neighbours'); NaN off the finger's blocks."""
+    h, w = valid.shape
+    h2, w2 = h // 2, w // 2
+    if h2 < 2 or w2 < 2:
+        return np.full((h, w), np.nan, np.float32)
+    inside = cv2.resize(valid[: 2 * h2, : 2 * w2].view(np.uint8), (w2, h2),
+                        interpolation=cv2.INTER_AREA) > 0
+    mean = cv2.resize(np.ascontiguousarray(normals[: 2 * h2, : 2 * w2]), (w2, h2),
+                      interpolation=cv2.INTER_AREA)  # zeros off the finger: shorter, same way
+    half = k_matrix.copy()
+    half[:2] /= 2.0
+    half[:2, 2] -= 0.25  # pixel (u, v) of the blocks is pixel (2 u + 1/2, 2 v + 1/2)
+    depth2 = _nearest_at(integrate_normals_perspective(
+        mean, mask=inside, camera_matrix=half, working_distance_m=options.working_distance_m,
+        tol=_RELIGHT_TOL), options.working_distance_m)
+    depth = np.empty((h, w), np.float32)
+    depth[: 2 * h2, : 2 * w2] = np.repeat(np.repeat(depth2, 2, axis=0), 2, axis=1)
+    if h % 2:
+        depth[-1] = depth[-2]
+    if w % 2:
+        depth[:, -1] = depth[:, -2]
+    return depth
+
+
 def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
              options: ReconstructionOptions) -> tuple[np.ndarray, ...]:
-    """Depth, height, points and their pixel index, under the options' projection."""
+    """Depth, height, points and their pixel index, under the options' projection; the
+    finger's nearest point at the working distance (:func:`_nearest_at`)."""
     distance = options.working_distance_m
     if options.projection is Projection.PERSPECTIVE:
-        depth = integrate_normals_perspective(normals, mask=valid, camera_matrix=k_matrix,
-                                              working_distance_m=distance)
+        depth = _nearest_at(integrate_normals_perspective(
+            normals, mask=valid, camera_matrix=k_matrix, working_distance_m=distance),
+            distance)
         points, index = depth_to_points(depth, valid, camera_matrix=k_matrix)
         return depth, (distance - depth).astype(np.float32), points, index
     pixel_size = distance / float(k_matrix[0, 0])
     height = integrate_normals(normals, mask=valid, pixel_size_m=pixel_size)
+    height -= np.nanmax(height) if bool(np.isfinite(height).any()) else 0.0
     depth = (distance - height.astype(np.float64)).astype(np.float32)
     index = np.flatnonzero(valid & np.isfinite(height))
     v, u = np.divmod(index, valid.shape[1])
     points = np.stack([(u - k_matrix[0, 2]) * pixel_size, (v - k_matrix[1, 2]) * pixel_size,
                        depth.reshape(-1)[index]], axis=1).astype(np.float32)
     return depth, height, points, index
+
+
+def _nearest_at(depth: np.ndarray, distance: float) -> np.ndarray:
+    """``depth`` (H, W) float32 (NaN off the finger) scaled in place so that its nearest
+    point is at ``distance``. The normals fix a perspective depth up to a scale (the
+    log-depth's offset, :func:`surface.integration.integrate_normals_perspective`, which
+    puts the geometric mean at the working distance); the working distance is where the
+    finger's nearest point (its apex) is held, the plane the near lights are computed for
+    (:mod:`photometric.pixel_rays`). Putting the mean there instead would bring a finger,
+    whose margins fall away by several millimetres, ~2 % too near and shrink every length
+    on it (its rolled print) by as much (bench/bench_normal_tilt.py)."""
+    nearest = float(np.fmin.reduce(depth, axis=None))  # NaN ignored; NaN when all are
+    if math.isfinite(nearest):
+        depth *= np.float32(distance / nearest)
+    return depth
 
 
 # Image dtypes used as they are (the solvers read them; integers are exact in float32):
