@@ -588,8 +588,9 @@ def _half_resolution_depth(normals: np.ndarray, valid: np.ndarray, k_matrix: np.
 
 def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
              options: ReconstructionOptions) -> tuple[np.ndarray, ...]:
-    """Depth, height, points and their pixel index, under the options' projection; the
-    finger's nearest point at the working distance (:func:`_nearest_at`)."""
+    """Depth, height, points and their pixel index, under the options' projection:
+    perspective, the finger's nearest point at the working distance (:func:`_nearest_at`);
+    orthographic, the height of zero mean (no scale depends on it)."""
     distance = options.working_distance_m
     if options.projection is Projection.PERSPECTIVE:
         depth = _nearest_at(integrate_normals_perspective(
@@ -599,7 +600,6 @@ def _surface(normals: np.ndarray, valid: np.ndarray, k_matrix: np.ndarray,
         return depth, (distance - depth).astype(np.float32), points, index
     pixel_size = distance / float(k_matrix[0, 0])
     height = integrate_normals(normals, mask=valid, pixel_size_m=pixel_size)
-    height -= np.nanmax(height) if bool(np.isfinite(height).any()) else 0.0
     depth = (distance - height.astype(np.float64)).astype(np.float32)
     index = np.flatnonzero(valid & np.isfinite(height))
     v, u = np.divmod(index, valid.shape[1])
