@@ -140,7 +140,8 @@ def run(args: argparse.Namespace) -> int:
                                      pixel_size=args.pixel_size)
     if fingerprint["made"]:
         written.append("fingerprint.png")
-        written.extend(fingerprint.pop("records_written"))
+        written.extend(name for name, record in fingerprint["records"].items()
+                       if isinstance(record, dict) and record["made"])
     t_write = time.perf_counter()
 
     report = {
@@ -202,8 +203,7 @@ print is unrolled: at 10 m a 5 mm deep finger changes the scale by 0.05 %."""
 def _write_fingerprint(path: Path, height: np.ndarray, normals: np.ndarray, mask: np.ndarray,
                        *, pixel_size: float | None) -> dict:
     """Write the 500 ppi rolled print (PNG) and its exchange records beside it
-    (``records.print_records``); return what report.json says of them, with the records'
-    file names under ``records_written``."""
+    (``records.print_records``); return what report.json says of them."""
     if pixel_size is None:
         return {"made": False, "reason": "needs --pixel-size (metres per pixel): a 500 ppi "
                 "print needs the metric scale"}
@@ -218,10 +218,11 @@ def _write_fingerprint(path: Path, height: np.ndarray, normals: np.ndarray, mask
         return {"made": False, "reason": str(exc)}
     path.write_bytes(png_with_resolution(made.image, made.ppi))
     records = make_print_records(made.image, transaction_control=path.parent.resolve().name)
+    records.write(path.parent)
     return {"made": True, "ppi": made.ppi, "width_px": int(made.image.shape[1]),
             "height_px": int(made.image.shape[0]), "area_mm2": made.area_mm2,
             "strain_rms": made.strain_rms, "coherence": made.coherence,
-            "records": records.report(), "records_written": records.write(path.parent)}
+            "records": records.report()}
 
 
 def _write_cloud(path: Path, height: np.ndarray, normals: np.ndarray, albedo: np.ndarray,

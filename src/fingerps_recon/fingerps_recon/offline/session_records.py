@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from fingerps_ros import topics
     from fingerps_ros.errors import MessageError
     from fingerps_ros.image_conversion import image_to_array
+    from fingerps_ros.time_conversion import time_nanoseconds
 
     bag = Path(args.bag)
     reader = SessionBagReader(bag, raise_on_damage=False)
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     for k, message in enumerate(reader.messages(wanted), start=1):
         msg = message.deserialize()
         entry: dict = {"print": k, "topic": message.topic,
-                       "stamp_ns": msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec}
+                       "stamp_ns": time_nanoseconds(msg.header.stamp)}
         if msg.encoding != "mono8":
             entry["reason"] = f"a print is a mono8 image, this one is {msg.encoding}: skipped"
             listed.append(entry)

@@ -77,13 +77,14 @@ def find_minutiae(image: np.ndarray) -> PrintMinutiae:
         raise RecordError("OpenCV could not encode the print for NBIS")
     nfiq2: int | None = None
     nfiq2_problem = ""
+    with_nfiq2 = _extractor(True)
+    import nbis  # importable: _extractor has imported it
+
     try:
         try:
-            found = _extractor(True).extract_minutiae(png.tobytes())
+            found = with_nfiq2.extract_minutiae(png.tobytes())
             nfiq2 = int(found.quality().score)
-        except Exception as exc:  # NbisError.Nfiq2ComputeFailed: the minutiae without it
-            if "Nfiq2" not in type(exc).__name__:
-                raise
+        except nbis.NbisError.Nfiq2ComputeFailed as exc:  # the minutiae without NFIQ 2
             nfiq2_problem = f"NFIQ 2 could not score the print ({type(exc).__name__} {exc})"
             found = _extractor(False).extract_minutiae(png.tobytes())
     except Exception as exc:  # nbis raises its own NbisError / InternalError
