@@ -11,6 +11,7 @@ in the same order on the same machine, so nothing but the transport differs.
 from __future__ import annotations
 
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -133,6 +134,30 @@ def test_start_offset_and_topic_filter(session_bag: Path, ros_node: Node, start_
                       "-p", f"topics:=[{LIGHTS_TOPIC}]")
     assert only.wait() == 0
     assert "replay done: 1 messages published" in only.output
+
+
+def test_waiting_for_a_late_subscriber_keeps_the_recorded_spacing(
+        session_bag: Path, ros_node: Node, start_node, spin_until) -> None:
+    """The bursts' subscriber joins seconds after the replay started: the first burst waits
+    for it, the calibration is there before it, and the second still follows a recorded
+    second later (not at once, as it would if the wait counted as playing time)."""
+    replay = start_node("fingerps_recon", "bag_replay", "--ros-args",
+                        "-p", f"bag:={session_bag}", "-p", "wait_for_subscribers:=1")
+    lights: list[LightCalibration] = []
+    ros_node.create_subscription(LightCalibration, LIGHTS_TOPIC, lights.append,
+                                 qos.CALIBRATION_QOS)
+    spin_until(lambda: lights, "the calibration, before any burst subscriber exists")
+    wait_until_s = time.monotonic() + 2.5  # held past both bursts' recorded times
+    spin_until(lambda: time.monotonic() > wait_until_s, "the late subscriber's moment")
+    arrivals: list[tuple[int, float, int]] = []
+    ros_node.create_subscription(
+        Burst, BURST_TOPIC,
+        lambda m: arrivals.append((m.burst_id, time.monotonic(), len(lights))), qos.BURST_QOS)
+    spin_until(lambda: len(arrivals) == 2, "both bursts for the late subscriber")
+    assert replay.wait() == 0, replay.output
+    (first, t1, lights_then), (second, t2, _) = arrivals
+    assert (first, second) == (1, 2) and lights_then == 1
+    assert t2 - t1 > 0.5, f"the second burst came {t2 - t1:.3f} s after the first"
 
 
 def test_a_bag_of_another_message_version_is_refused(tmp_path: Path, installed) -> None:

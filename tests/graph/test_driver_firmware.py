@@ -44,6 +44,9 @@ def test_driver_captures_bursts_through_the_firmware_and_sets_its_trigger(
         response = call_service(client, CaptureBurst.Request())
         assert response.success, response.message
         assert_truly_tagged(response.burst.frames)
+    # the service's bursts are published too (reliable): count from after both are heard,
+    # or a late one would stand in for a burst at the rate
+    spin_until(lambda: len(bursts) >= 2, "the two captured bursts on the burst topic")
 
     published = len(bursts)
     assert all(result.successful for result in set_parameters("driver", {"rate": 5.0}))

@@ -11,8 +11,12 @@ Calibration topics (offered transient-local when recorded) are published with
 published when playback begins, so a consumer gets the calibration in force; other known
 topics get the recorder's QoS (`sessions.session_topics.TOPIC_TABLE`), unknown ones reliable
 depth 10.
-``wait_for_subscribers`` holds each non-calibration topic's first message until that many
-subscribers have matched (a volatile topic's messages published before would be lost).
+``wait_for_subscribers`` holds each topic's first message until that many subscribers have
+matched (a volatile topic's messages published before would be lost), and holds playback
+after a calibration message until they acknowledged it: a consumer then has the calibration
+in force before the bursts that follow it (discovery matches the topics in no set order, so
+a transient-local calibration alone could reach it after the first burst). The recorded
+spacing is kept from after these waits.
 
 The bag is read with `fingerps_recon.sessions.bag_reader.SessionBagReader`: a bag recorded with
 another version of our messages is refused (exit code 1 and one line), a damaged bag is
@@ -31,6 +35,7 @@ from typing import Any
 
 import rclpy
 import yaml
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
@@ -59,8 +64,9 @@ BAG_REPLAY_PARAMETERS = (
     ParameterRow("topics", [""], "Topics to play (absolute, as recorded); empty = all",
                  read_only=True),
     ParameterRow("wait_for_subscribers", 0,
-                 "Hold each non-calibration topic's first message until this many subscribers "
-                 f"matched (at most {SUBSCRIBER_WAIT_S:.0f} s)", min_value=0, max_value=100,
+                 "Hold each topic's first message until this many subscribers matched, and "
+                 "playback after a calibration message until they acknowledged it (at most "
+                 f"{SUBSCRIBER_WAIT_S:.0f} s each)", min_value=0, max_value=100,
                  integer=True, read_only=True),
     ParameterRow("exit_when_done", True, "Shut the node down after the last message",
                  read_only=True),
@@ -103,6 +109,7 @@ class BagReplayNode(Node):
         self._stop = threading.Event()
         self.failed = False
         self.published = 0
+        self._held_s = 0.0  # seconds held by wait_for_subscribers so far
         self._worker = threading.Thread(target=self._play, name="bag_replay")
         self._worker.start()
         self.get_logger().info(
@@ -111,20 +118,37 @@ class BagReplayNode(Node):
 
     # ------------------------------------------------------------------ publishing
     def _publisher(self, message: BagMessage) -> Any:
+        """The topic's publisher; the first time, it waits for ``wait_for_subscribers``."""
         publisher = self._topic_publishers.get(message.topic)
         if publisher is not None:
             return publisher
-        latched = _is_transient_local(message.offered_qos_yaml)
-        profile = qos.CALIBRATION_QOS if latched else self._profile(message.topic)
+        profile = (qos.CALIBRATION_QOS if _is_transient_local(message.offered_qos_yaml)
+                   else self._profile(message.topic))
         publisher = self.create_publisher(message_class(message.type_name), message.topic,
                                           profile)
         self._topic_publishers[message.topic] = publisher
-        if self._subscribers and not latched:
-            deadline = time.monotonic() + SUBSCRIBER_WAIT_S
+        if self._subscribers:
+            start = time.monotonic()
             while (publisher.get_subscription_count() < self._subscribers
-                   and time.monotonic() < deadline and not self._stop.is_set()):
+                   and time.monotonic() < start + SUBSCRIBER_WAIT_S
+                   and not self._stop.is_set()):
                 time.sleep(0.02)
+            self._held_s += time.monotonic() - start
         return publisher
+
+    def _publish(self, message: BagMessage) -> None:
+        """Publish one message; a calibration is then waited for until its subscribers
+        acknowledged it (with ``wait_for_subscribers``), so it arrives before what follows."""
+        publisher = self._publisher(message)
+        publisher.publish(message.data)
+        self.published += 1
+        if self._subscribers and _is_transient_local(message.offered_qos_yaml):
+            start = time.monotonic()
+            if not publisher.wait_for_all_acked(Duration(seconds=SUBSCRIBER_WAIT_S)):
+                self.get_logger().warning(
+                    f"{message.topic}: not acknowledged by every subscriber within "
+                    f"{SUBSCRIBER_WAIT_S:.0f} s; playing on")
+            self._held_s += time.monotonic() - start
 
     def _profile(self, topic: str) -> QoSProfile:
         for key, spec in TOPIC_TABLE.items():
@@ -149,6 +173,7 @@ class BagReplayNode(Node):
     def _play_messages(self) -> None:
         first_ns: int | None = None
         clock: tuple[float, int] | None = None  # (wall time, bag offset) of the first played
+        held_s = 0.0  # self._held_s when the clock was last set
         held: dict[str, BagMessage] = {}  # calibration before start: the latest of each
         for message in self._reader.messages(self._topics):
             if self._stop.is_set():
@@ -163,21 +188,21 @@ class BagReplayNode(Node):
                     held[message.topic] = message
                 continue
             for early in held.values():
-                self._publisher(early).publish(early.data)
-                self.published += 1
+                self._publish(early)
             held.clear()
-            publisher = self._publisher(message)  # may wait for subscribers
+            self._publisher(message)  # the first time, it may wait for subscribers
             if self._rate > 0:
                 if clock is None:
                     clock = (time.monotonic(), offset)
+                else:  # the recorded spacing holds from after the waits
+                    clock = (clock[0] + self._held_s - held_s, clock[1])
+                held_s = self._held_s
                 due = clock[0] + (offset - clock[1]) / 1e9 / self._rate
                 if self._stop.wait(max(due - time.monotonic(), 0.0)):
                     return
-            publisher.publish(message.data)
-            self.published += 1
+            self._publish(message)
         for early in held.values():  # start beyond the last message: still the calibration
-            self._publisher(early).publish(early.data)
-            self.published += 1
+            self._publish(early)
 
     def destroy_node(self) -> None:
         """Stop the worker and destroy the node."""
