@@ -1,6 +1,8 @@
 """Run every fingerps benchmark, print their tables, write bench/results.json.
 
-Two passes. The native pass runs every benchmark in this process, as the machine is. The
+Two passes. The native pass runs every benchmark in this process, as the machine is (or as
+this process's switches say, when it was started with AVX-512 off: ``machine.native_avx512``
+then reads 0; the AVX2 pass's switches are the machine's whole list all the same). The
 AVX2 pass runs the speed benchmarks again in a process of their own started with AVX-512
 turned off for numba, numpy and OpenCV (``simd_env.avx2_env``; each library reads its
 switch at import, and the graph's node processes inherit the environment): what an AVX2

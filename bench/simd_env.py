@@ -28,8 +28,12 @@ the AVX2 run differs from the native one only by numba's CPU name.
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 from collections.abc import Mapping
+from pathlib import Path
 
 NUMBA_AVX2_CPU = "haswell"
 SWITCHES = ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES", "NPY_DISABLE_CPU_FEATURES",
@@ -83,7 +87,14 @@ def opencv_avx512_features() -> list[str]:
 
 
 def avx2_switches() -> dict[str, str]:
-    """The environment variables that turn AVX-512 off here (see the module docstring)."""
+    """The environment variables that turn AVX-512 off here (see the module docstring).
+
+    Derived from what the machine has, whatever this process was started with: numpy and
+    OpenCV report a feature their switch turned off as absent, so in a process that already
+    has a switch set (a bench or a test run with AVX-512 off) they are asked in a child
+    process started without the switches."""
+    if any(name in os.environ for name in SWITCHES[2:]):
+        return _switches_of_a_clean_process()
     switches = {"NUMBA_CPU_NAME": NUMBA_AVX2_CPU,
                 "NUMBA_CPU_FEATURES": numba_features_without_avx512(host_llvm_features())}
     numpy_targets = numpy_avx512_targets()
@@ -93,6 +104,16 @@ def avx2_switches() -> dict[str, str]:
     if opencv_features:
         switches["OPENCV_CPU_DISABLE"] = ",".join(opencv_features)
     return switches
+
+
+def _switches_of_a_clean_process() -> dict[str, str]:
+    """:func:`avx2_switches` computed in a child process without the switches."""
+    env = {k: v for k, v in os.environ.items() if k not in SWITCHES}
+    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); import simd_env; "
+            "print(json.dumps(simd_env.avx2_switches()))")
+    run = subprocess.run([sys.executable, "-c", code, str(Path(__file__).resolve().parent)],
+                         env=env, capture_output=True, text=True, timeout=300, check=True)
+    return json.loads(run.stdout.splitlines()[-1])
 
 
 def avx2_env(base: Mapping[str, str] | None = None) -> dict[str, str]:

@@ -6,6 +6,7 @@ merge into results.json as ``<name>.avx2`` beside the native names."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -53,12 +54,23 @@ def avx2_env() -> dict[str, str]:
     return simd_env.avx2_env()
 
 
-@pytest.fixture(scope="module")
-def probed(avx2_env) -> tuple[dict, str]:
-    run = subprocess.run([sys.executable, "-c", PROBE], env=avx2_env, capture_output=True,
+def _probe(env: dict[str, str]) -> tuple[dict, str]:
+    run = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True,
                          text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     return json.loads(run.stdout.splitlines()[-1]), run.stderr
+
+
+@pytest.fixture(scope="module")
+def probed(avx2_env) -> tuple[dict, str]:
+    return _probe(avx2_env)
+
+
+@pytest.fixture(scope="module")
+def machine() -> dict:
+    """What numpy and OpenCV find on this machine, asked in a process without the switches
+    (this one may run with AVX-512 off: then they report those features absent)."""
+    return _probe({k: v for k, v in os.environ.items() if k not in simd_env.SWITCHES})[0]
 
 
 def test_numba_gets_the_hosts_features_with_exactly_the_avx512_ones_off(avx2_env):
@@ -72,16 +84,17 @@ def test_numba_gets_the_hosts_features_with_exactly_the_avx512_ones_off(avx2_env
     assert simd_env.numba_target_has_avx512(avx2_env) is False
 
 
-def test_numpy_is_told_exactly_its_dispatched_avx512_targets_this_machine_has(avx2_env):
+def test_numpy_is_told_exactly_its_dispatched_avx512_targets_this_machine_has(avx2_env,
+                                                                            machine):
     expected = [t for t in umath.__cpu_dispatch__
-                if simd_env.is_avx512(t) and umath.__cpu_features__.get(t)]
+                if simd_env.is_avx512(t) and machine["numpy"].get(t)]
     assert avx2_env.get("NPY_DISABLE_CPU_FEATURES", "").split(",") == (expected or [""])
     assert all(t in umath.__cpu_dispatch__ for t in expected)  # else numpy ignores it
 
 
-def test_opencv_is_told_exactly_its_avx512_features_this_machine_has(avx2_env):
+def test_opencv_is_told_exactly_its_avx512_features_this_machine_has(avx2_env, machine):
     expected = [n for i in range(1024) if (n := cv2.getHardwareFeatureName(i))
-                and "AVX512" in n and cv2.checkHardwareSupport(i)]
+                and "AVX512" in n and machine["opencv"].get(n)]
     assert avx2_env.get("OPENCV_CPU_DISABLE", "").split(",") == (expected or [""])
 
 
@@ -97,6 +110,18 @@ def test_in_the_avx2_process_no_library_uses_avx512(probed):
     # every name was understood: no "unknown CPU feature" (OpenCV) nor ignored name (numpy)
     assert "OPENCV: Trying to disable" not in stderr
     assert "NPY_DISABLE_CPU_FEATURES" not in stderr
+
+
+def test_a_process_already_without_avx512_derives_the_same_switches(avx2_env):
+    """A bench or test started with AVX-512 already off (numpy and OpenCV then report those
+    features absent) still gives its AVX2 child process the machine's whole list."""
+    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); import simd_env; "
+            "print(json.dumps(simd_env.avx2_switches()))")
+    run = subprocess.run([sys.executable, "-c", code, str(BENCH)], env=avx2_env,
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    nested = json.loads(run.stdout.splitlines()[-1])
+    assert nested == {k: v for k, v in avx2_env.items() if k in simd_env.SWITCHES}
 
 
 def test_a_users_switch_does_not_leak_into_the_avx2_run():
@@ -137,7 +162,9 @@ def test_the_two_passes_merge_into_avx2_names_beside_the_native_ones():
     assert merged["e2e.hk.lost.avx2"] == 1.0 and merged["soak.bursts_lost"] == 0.0
     assert "recon.um.depth_rms_ortho_fast.avx2" not in merged
     assert isinstance(merged["machine.cpu_model"], str)
-    assert merged["machine.native_avx512"] == float("avx512f" in FLAGS)
+    # whether the native pass (this process: maybe started with AVX-512 off) used AVX-512
+    assert merged["machine.native_avx512"] == float(
+        "avx512f" in FLAGS and simd_env.numba_target_has_avx512())
     assert set(merged["machine.simd_flags"].split()) <= FLAGS
     assert json.loads(json.dumps(merged, allow_nan=False)) == merged
 
