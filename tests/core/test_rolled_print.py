@@ -8,11 +8,13 @@ Measured (this machine): crest spacing on the cylinder 196.91 px per 10 mm (exac
 the rig finger's print period 0.4855 mm (skin 0.5 mm; the estimator reads 0.4975 on the
 generator's own pattern, so ~-2.6 % is the springs model's radial compression of the
 doubly curved cap, see test_surface_unrolling's sphere cap); agreement of a reconstruction's
-print with the true ridges (correlation at the source pixels): Laplacian 0.974, relief
-0.851 (0.98 both beyond 1 mm from the outline: the relief's band pass fails near it);
+print with the true ridges (correlation at the source pixels): Laplacian 0.968, relief
+0.818 (0.98 both beyond 1 mm from the outline: the relief's band pass fails near it);
 ridge-orientation coherence 0.97 on ridges, 0.29 on band-limited noise (limit 0.45);
 egg-crate bumps (1 mm over 3 mm) unroll with 13 % rms strain (limit 5 %); with noise of
-0.3 per component added to the normals, Gabor filtering raises the agreement 0.869 -> 0.955.
+0.3 per component added to the normals, Gabor filtering raises the agreement 0.912 -> 0.952
+(0.869 -> 0.955 with the band pass's former fine sigma of 0.06 mm, which let more noise
+through).
 """
 
 from __future__ import annotations
@@ -42,8 +44,8 @@ PX_PER_10_MM = 196.85
 SCALE_TOLERANCE_PX = 2.0
 #: The rig finger's print period may differ from the skin's by this fraction.
 PERIOD_TOLERANCE = 0.05
-#: Least correlation of a reconstruction's print with the true ridges (measured 0.974, as
-#: the print of the true surface; the relief's print 0.851).
+#: Least correlation of a reconstruction's print with the true ridges (measured 0.968; the
+#: relief's print 0.818).
 AGREEMENT = 0.95
 #: Noise added to each component of the reconstructed normals for the Gabor test.
 NORMAL_NOISE = 0.3
@@ -276,4 +278,4 @@ def test_gabor_filtering_helps_noisy_normals(rig_case) -> None:
         agreement[gabor] = _agreement(result, ridges)
         print(f"\ngabor {gabor}: agreement {agreement[gabor]:.3f}, coherence "
               f"{result.coherence:.3f}, enhance {result.timings_ms['enhance']:.0f} ms")
-    assert agreement[True] > agreement[False] + 0.05
+    assert agreement[True] > agreement[False] + 0.02
