@@ -4,17 +4,16 @@ Analytic case: the 8 mm cylinder of test_surface_unrolling carrying 50 um ridges
 axis, crests every 0.5 mm of arc length. Simulated case: the rig's finger (true depth),
 and a reconstruction of a simulated burst (as tests/core/test_pipeline.py runs it).
 
-Measured (this machine): crest spacing on the cylinder 196.91 px per 10 mm (exact: 196.85);
-the rig finger's print period 0.4855 mm (skin 0.5 mm; the estimator reads 0.4975 on the
-generator's own pattern, so ~-2.6 % is the springs model's radial compression of the
-doubly curved cap, see test_surface_unrolling's sphere cap); agreement of a reconstruction's
-print with the true ridges (correlation at the source pixels): Laplacian 0.968, relief
-0.818 (0.98 both beyond 1 mm from the outline: the relief's band pass fails near it);
+Measured (this machine): crest spacing on the cylinder 196.97 px per 10 mm (exact: 196.85);
+the rig finger's print period 0.4962 mm (skin 0.5 mm; the estimator reads 0.4975 on the
+generator's own pattern; 0.4855 with the springs layout, whose radial compression of the
+doubly curved cap costs ~2.6 %, see test_surface_unrolling's sphere cap); agreement of a
+reconstruction's print with the true ridges (correlation at the source pixels): Laplacian
+0.965, relief 0.783 (0.98 both beyond 1 mm from the outline: the relief's band pass fails near it);
 ridge-orientation coherence 0.97 on ridges, 0.29 on band-limited noise (limit 0.45);
 egg-crate bumps (1 mm over 3 mm) unroll with 13 % rms strain (limit 5 %); with noise of
-0.3 per component added to the normals, Gabor filtering raises the agreement 0.912 -> 0.952
-(0.869 -> 0.955 with the band pass's former fine sigma of 0.06 mm, which let more noise
-through).
+0.3 per component added to the normals, Gabor filtering raises the agreement 0.906 -> 0.937
+(0.869 -> 0.955 with the band pass's former fine sigma of 0.06 mm and the springs layout).
 """
 
 from __future__ import annotations
@@ -44,8 +43,8 @@ PX_PER_10_MM = 196.85
 SCALE_TOLERANCE_PX = 2.0
 #: The rig finger's print period may differ from the skin's by this fraction.
 PERIOD_TOLERANCE = 0.05
-#: Least correlation of a reconstruction's print with the true ridges (measured 0.968; the
-#: relief's print 0.818).
+#: Least correlation of a reconstruction's print with the true ridges (measured 0.965; the
+#: relief's print 0.783).
 AGREEMENT = 0.95
 #: Noise added to each component of the reconstructed normals for the Gabor test.
 NORMAL_NOISE = 0.3

@@ -11,13 +11,23 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    normals (the divergence of the slope field p = -nx/nz, q = -ny/nz in metric units,
    negated so that ridges, raised towards the camera, are positive), or the relief
    ``height_m`` itself. Measured on a reconstruction of the simulated rig's burst, the
-   Laplacian's print agrees better with the true ridges (correlation 0.97 against 0.82;
+   Laplacian's print agrees better with the true ridges (correlation 0.97 against 0.78;
    ``tests/core/test_rolled_print.py``; also with noise added to the normals): the relief
    carries the finger's whole shape, whose curvature the band pass cannot remove where its
    window is cut by the outline, and leaves a smeared band along it (both give 0.98 beyond
    1 mm from the outline). The Laplacian is the default.
-2. Unrolling (springs model) and resampling at exactly ``ppi`` (19.685 px/mm at 500 ppi)
-   with ``cv2.remap`` through the inverse map of the unrolling, mirrored left-right (below).
+2. Unrolling and resampling at exactly ``ppi`` (19.685 px/mm at 500 ppi) with
+   ``cv2.remap`` through the inverse map of the unrolling, mirrored left-right (below). The
+   plane is by default the rolled finger's (``Layout.ROLLED``,
+   :mod:`fingerps_recon.surface.rolled_layout`: arc lengths around the finger along its
+   sections and along it, as rolling it on a card lays the skin out), the plane rolled and
+   contact prints are in; the springs model (``Layout.SPRINGS``), which keeps every
+   neighbour distance as well as it can, spreads the cap's strain differently, by up to
+   ~6 % at the print's edge. On the fingerprint benchmark's HK captures the rolled plane put
+   every 4 mm region of the print within 1.45 % of the scale of the finger's true rolled
+   plane (springs: 6.7 %) and the median distance left after a similarity fit at 0.06 mm
+   (0.19 mm); recall / precision 0.985 / 0.972 (0.991 / 0.976), NFIQ 2 median 54 (55),
+   bozorth3 against contact impressions 0.77 of contact-vs-contact (0.79) (issue 23).
 3. Band pass on the print plane, where the ridge period is the skin's: a difference of
    Gaussians (sigma 0.1 and 0.3 mm: half its peak gain at periods of 0.43 and 1.9 mm, 6 % at
    0.25 mm), as normalized convolutions within the print's mask, so the outside does not
@@ -66,7 +76,7 @@ import numpy as np
 from fingerps_recon.errors import FingerpsReconError, RolledPrintError, UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
 from fingerps_recon.surface import print_kernel
-from fingerps_recon.surface.surface_unrolling import SurfaceUnrolling, unroll_surface
+from fingerps_recon.surface.surface_unrolling import Layout, SurfaceUnrolling, unroll_surface
 
 MM_PER_INCH = 25.4
 # Print pixels whose source neighbourhood is at least this fraction inside the mask.
@@ -101,6 +111,9 @@ class RolledPrintOptions:
     normalisation_sigma_mm: float = 0.4
     """Gaussian window of the local mean and standard deviation (~1 mm across)."""
     mesh_spacing_mm: float = 0.5
+    layout: Layout = Layout.ROLLED
+    """The unrolled plane: the rolled finger's (arc lengths around and along it, as rolling
+    it on a card lays it out) or the springs' (``surface_unrolling``)."""
     border_px: int = 8
     """White margin around the finger, print pixels."""
     trim_mm: float = 0.2
@@ -114,7 +127,7 @@ class RolledPrintOptions:
     max_size_mm: float = 60.0
     gabor: bool = False
     """Contextual (Gabor) filtering after the normalisation. On the simulated rig it helps
-    only noisy normals (agreement with the true ridges 0.91 -> 0.95 with normals noise of
+    only noisy normals (agreement with the true ridges 0.91 -> 0.94 with normals noise of
     0.3 per component) and costs a filter bank per print; on clean ones it did not help
     mindtct (12 benchmark captures, with the former fine sigma of 0.06 mm: recall /
     precision 0.885 / 0.867 with it, 0.882 / 0.875 without), so it is off by default."""
@@ -219,7 +232,7 @@ def rolled_print(
     t1 = time.perf_counter()
     try:
         unrolling = unroll_surface(depth, mask=valid, camera_matrix=k,
-                                   spacing_mm=options.mesh_spacing_mm)
+                                   spacing_mm=options.mesh_spacing_mm, layout=options.layout)
     except UnrollingError as error:
         raise RolledPrintError(
             PrintRejection.TOO_SMALL,

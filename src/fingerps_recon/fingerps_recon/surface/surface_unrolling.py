@@ -36,6 +36,11 @@ Steps (:func:`unroll_surface`):
 A developable surface (a cylinder) unrolls with zero strain; a doubly curved one (a
 fingertip's cap, a sphere) cannot, and the residual strain (rms and max of
 |x_i - x_j| / L_ij - 1) says how much the layout stretches the skin.
+
+``layout=Layout.ROLLED`` lays the same mesh out as a finger rolled on a card instead
+(:mod:`fingerps_recon.surface.rolled_layout`: arc lengths around and along the finger),
+the plane of rolled and contact prints; the springs are still relaxed, for the strain
+figures (how far the surface is from developable), and step 4 places either layout.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from enum import Enum
 from functools import cached_property
 
 import cv2
@@ -52,6 +58,7 @@ import scipy.linalg
 from fingerps_recon.errors import UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
 from fingerps_recon.surface import print_kernel
+from fingerps_recon.surface.rolled_layout import rolled_layout
 
 # Neighbour offsets (rows, cols) of the springs: right, down, down-right, down-left.
 _SPRINGS = ((0, 1), (1, 0), (1, 1), (1, -1))
@@ -63,6 +70,16 @@ _COST_TOLERANCE = 1e-4
 _LAMBDA_START = 1e-4
 # Smallest eigenvalue of a node's normalised local-fit system (a sliver is left out).
 _MIN_FIT_CONDITION = 1e-4
+
+
+class Layout(Enum):
+    """How the mesh is laid out in the plane."""
+
+    SPRINGS = "springs"
+    """Every neighbour distance kept as well as it can be (steps 2-3 above)."""
+    ROLLED = "rolled"
+    """Arc lengths around and along the finger, as rolling it on a card lays it out
+    (:mod:`fingerps_recon.surface.rolled_layout`)."""
 
 
 @dataclass(frozen=True)
@@ -87,7 +104,8 @@ class SurfaceUnrolling:
     springs : (E, 2) int
         Indices of the node pairs joined by a spring.
     spring_strain : (E,) float64
-        |x_i - x_j| / L_ij - 1 of each spring after relaxation.
+        |x_i - x_j| / L_ij - 1 of each spring after relaxation (the springs' layout, also
+        when ``node_xy_mm`` is the rolled one: how far the surface is from developable).
     strain_rms, strain_max : float
         Root mean square and largest absolute spring strain.
     mask : (H, W) bool
@@ -148,13 +166,7 @@ class SurfaceUnrolling:
         rows, cols = np.nonzero(filled)
         pixels = np.stack([(cols - 1) * step + (step - 1) / 2.0,
                            (rows - 1) * step + (step - 1) / 2.0], axis=1)
-        a, b = index[:-1, :-1], index[:-1, 1:]
-        c, d = index[1:, :-1], index[1:, 1:]
-        ad = (a >= 0) & (d >= 0)
-        bc = ~ad & (b >= 0) & (c >= 0)
-        tris = [np.stack([a, b, d], -1)[ad & (b >= 0)], np.stack([a, d, c], -1)[ad & (c >= 0)],
-                np.stack([a, b, c], -1)[bc & (a >= 0)], np.stack([b, d, c], -1)[bc & (d >= 0)]]
-        return grid[filled], pixels, np.concatenate(tris, axis=0)
+        return grid[filled], pixels, cell_triangles(index)
 
     def source_pixels(
         self, x_mm: np.ndarray, y_mm: np.ndarray, *, coarse_step: int = 4
@@ -227,6 +239,7 @@ def unroll_surface(
     min_fill: float = 0.3,
     max_iterations: int = 50,
     min_nodes: int = 16,
+    layout: Layout = Layout.SPRINGS,
 ) -> SurfaceUnrolling:
     """Unroll the surface seen in a depth map onto a plane (springs model, see the module).
 
@@ -255,6 +268,9 @@ def unroll_surface(
         Levenberg-Marquardt iterations at most.
     min_nodes : int
         Fewer valid nodes raise :class:`UnrollingError`.
+    layout : Layout
+        The map to the plane: the springs (steps 2-3 of the module docstring) or the
+        rolled finger's arc lengths (:mod:`fingerps_recon.surface.rolled_layout`).
 
     Returns
     -------
@@ -301,9 +317,11 @@ def unroll_surface(
     apex = int(np.argmin(node_z_mm[rows, cols]))
     init = _arc_length_layout(points, index, rows[apex], cols[apex], step * pixel_mm)
     xy, iterations = _relax(init, springs, rest, max_iterations)
-    xy = _rigid_to_image(xy, pix * pixel_mm, apex)
-
+    # The springs' strain says how far the surface is from developable, whichever layout.
     strain = np.linalg.norm(xy[springs[:, 1]] - xy[springs[:, 0]], axis=1) / rest - 1.0
+    if layout is Layout.ROLLED:
+        xy = rolled_layout(points, cell_triangles(index), apex, step * pixel_mm)
+    xy = _rigid_to_image(xy, pix * pixel_mm, apex)
     return SurfaceUnrolling(
         grid_shape=(gh, gw), step_px=step, node_valid=node_valid, node_pixel=pix,
         node_point_mm=points, node_xy_mm=xy, springs=springs, spring_strain=strain,
@@ -392,6 +410,18 @@ def _shift_kernels(sigma: float, k: int, el: int) -> tuple[tuple[tuple[int, int]
             kern.setflags(write=False)
             kernels.append(((p, q), kern))
     return tuple(kernels)
+
+
+def cell_triangles(index: np.ndarray) -> np.ndarray:
+    """(T, 3) node indices of a node grid's triangles (``index``: (gh, gw) node index, -1
+    where there is none): two a cell, one where a corner is missing."""
+    a, b = index[:-1, :-1], index[:-1, 1:]
+    c, d = index[1:, :-1], index[1:, 1:]
+    ad = (a >= 0) & (d >= 0)
+    bc = ~ad & (b >= 0) & (c >= 0)
+    tris = [np.stack([a, b, d], -1)[ad & (b >= 0)], np.stack([a, d, c], -1)[ad & (c >= 0)],
+            np.stack([a, b, c], -1)[bc & (a >= 0)], np.stack([b, d, c], -1)[bc & (d >= 0)]]
+    return np.concatenate(tris, axis=0)
 
 
 def _springs(index: np.ndarray) -> np.ndarray:

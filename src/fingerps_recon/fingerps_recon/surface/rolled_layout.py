@@ -1,0 +1,204 @@
+"""The unrolled plane of a finger rolled on a card: arc lengths around and along the finger.
+
+An ink or live-scan rolled print is taken by rolling the finger across the card from nail
+edge to nail edge: each cross-section of the finger touches the card along its own line, and
+the card keeps the arc length around the finger (x) and the length along it (y). This module
+lays a reconstruction's mesh nodes out in that plane (``Layout.ROLLED`` of
+:func:`fingerps_recon.surface.surface_unrolling.unroll_surface`), where the springs model
+(``Layout.SPRINGS``, Chen et al. 2006) keeps every neighbour distance as well as it can: on
+a doubly curved cap the two maps differ by up to ~6 % locally (the springs compress the cap
+radially), and it is the rolled one that the galleries' rolled and contact prints are in.
+
+Steps (:func:`rolled_layout`), all on the nodes' 3D points (millimetres, optical frame):
+
+1. The finger's axis in the image plane: the direction of least curvature of a quadric
+   z = q(x, y) fitted to the nodes (along a finger its curvature is the smaller one: the
+   long radius of the cap, the bend of the shaft); the image's own axes when the two
+   curvatures are within 20 % (a dome without a direction).
+2. The surface resampled from the nodes on a regular grid across (s) and along (t) the axis,
+   half the mesh's spacing (linear over the mesh's triangles); a section
+   that the image's edge cuts short of its crest is continued to it by the nearest whole
+   one, shifted in depth to join it.
+3. Cross-sections: the planes t = const, perpendicular to the axis (the finger is rolled
+   about a straight axis; its bend away from the camera only shifts each section in depth).
+   x is the 3D arc length along a node's section from the crest, the section's point facing
+   the camera (dz/ds = 0, from the quadric), and y the 3D arc length along the crest from
+   the apex's section. A finger pitched by p towards the camera is cut at p from its own
+   sections: the arc lengths differ from its own by at most 1 / cos p - 1 (0.4 % at 5 deg).
+
+The result is a proper rotation of the image plane near the apex (slopes ~0 there), so
+:func:`~fingerps_recon.surface.surface_unrolling.unroll_surface` places it as it places the
+springs' layout (rotated onto the nodes' image positions, the apex at the origin).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from fingerps_recon.errors import UnrollingError
+from fingerps_recon.surface import print_kernel
+
+#: Grid rings the resampled surface is grown by beyond the mesh (``_grown``).
+_GROWTH = 2
+#: Curvature ratio below which the quadric gives no axis (the image's axes are taken).
+_ISOTROPIC = 0.8
+
+
+def rolled_layout(points: np.ndarray, triangles: np.ndarray, apex: int, spacing_mm: float
+                  ) -> np.ndarray:
+    """(N, 2) rolled-plane (x, y) of the nodes, millimetres (module docstring).
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        The mesh nodes' 3D points, optical frame, millimetres.
+    triangles : (T, 3) int
+        The mesh's triangles (node indices), over which the surface is interpolated.
+    apex : int
+        Index of the node nearest the camera (the origin of both arc lengths).
+    spacing_mm : float
+        The mesh's node spacing; the resampled surface's is half of it.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 6:
+        raise UnrollingError("the rolled layout needs at least 6 nodes' 3D points (N, 3)")
+    rel = pts - pts[apex]
+    across, along = _axis(rel)
+    s, t, z = rel[:, :2] @ across, rel[:, :2] @ along, rel[:, 2]
+
+    h = 0.5 * float(spacing_mm)
+    s_grid = np.arange(s.min() - h, s.max() + 2 * h, h)
+    t_grid = np.arange(t.min() - h, t.max() + 2 * h, h)
+    coef = _quadric(s, t, z)  # z ~ c0 + c1 s + c2 t + c3 s^2 + c4 s t + c5 t^2
+    if not coef[3] > 0:
+        raise UnrollingError("the surface is not convex across the finger: no crest to roll "
+                             "it from")
+    crest_s = -(coef[1] + coef[4] * t_grid) / (2 * coef[3])  # dz/ds = 0
+    crest_col = np.clip((crest_s - s_grid[0]) / h, 0.0, len(s_grid) - 1.001)
+    zg = _section_profiles(s, t, z, triangles, s_grid, t_grid, crest_col)
+
+    # x: arc length along each section (grid row) from the crest.
+    steps = np.sqrt(h * h + np.diff(_bridged(zg), axis=1) ** 2)
+    arc = np.concatenate([np.zeros((len(t_grid), 1)),
+                          np.cumsum(np.nan_to_num(steps, nan=h), axis=1)], axis=1)
+    rows = np.arange(len(t_grid))
+    c0 = crest_col.astype(np.int64)
+    arc -= (arc[rows, c0] + (crest_col - c0) * (arc[rows, c0 + 1] - arc[rows, c0]))[:, None]
+
+    # y: arc length along the crest from the apex's section.
+    crest_z = _filled(ndimage.map_coordinates(zg, [rows.astype(np.float64), crest_col],
+                                              order=1, cval=np.nan, prefilter=False))
+    crest_steps = np.sqrt(h * h + (np.diff(crest_s)) ** 2 + np.diff(crest_z) ** 2)
+    length = np.concatenate([[0.0], np.cumsum(crest_steps)])
+    length -= np.interp(0.0, t_grid, length)
+
+    x = ndimage.map_coordinates(arc, [(t - t_grid[0]) / h, (s - s_grid[0]) / h], order=1,
+                                mode="nearest", prefilter=False)
+    return np.stack([x, np.interp(t, t_grid, length)], axis=1)
+
+
+def _section_profiles(s: np.ndarray, t: np.ndarray, z: np.ndarray, triangles: np.ndarray,
+                      s_grid: np.ndarray, t_grid: np.ndarray, crest_col: np.ndarray
+                      ) -> np.ndarray:
+    """(rows t, cols s) depth of the surface on the grid: linear over the mesh's triangles,
+    NaN elsewhere. A section that the image's edge cuts
+    short of its crest is continued to the crest by the nearest section that reaches it,
+    shifted in depth to join the cut one at its edge (along a finger the sections change
+    slowly: on the shaft each is the same one moved by the bend)."""
+    h = s_grid[1] - s_grid[0]
+    out = np.full((len(t_grid), len(s_grid), 2), np.nan, dtype=np.float32)
+    print_kernel.rasterise(np.ascontiguousarray(np.c_[s - s_grid[0], t - t_grid[0]] / h),
+                           np.ascontiguousarray(np.c_[z, z]),
+                           np.ascontiguousarray(triangles, dtype=np.int64), out)
+    zg = _grown(out[..., 0].astype(np.float64), _GROWTH)
+    known = np.isfinite(zg)
+    rows = np.arange(len(t_grid))
+    crest = np.rint(crest_col).astype(np.int64)
+    whole = known[rows, crest]
+    if whole.all() or not whole.any():
+        return zg
+    cols = np.arange(len(s_grid))[None, :]
+    first = np.argmax(known, axis=1)[:, None]
+    last = (len(s_grid) - 1 - np.argmax(known[:, ::-1], axis=1))[:, None]
+    cut = ~whole & known.any(axis=1)
+    left = cut & (crest < first[:, 0])   # known part on the right of the crest
+    right = cut & (crest > last[:, 0])   # known part on the left
+    edge = np.where(left, first[:, 0], last[:, 0])
+    # For every row, the nearest row whose section reaches its crest and the cut edge.
+    donor = np.flatnonzero(whole)
+    distance = np.abs(rows[:, None] - donor[None, :]).astype(np.float64)
+    distance[~known[donor[None, :], edge[:, None]]] = np.inf
+    nearest = donor[distance.argmin(axis=1)]
+    offset = zg[rows, edge] - zg[nearest, edge]
+    gap = ((left[:, None] & (cols >= crest[:, None] - 1) & (cols < first))
+           | (right[:, None] & (cols > last) & (cols <= crest[:, None] + 1)))
+    filled = zg[nearest] + offset[:, None]
+    return np.where(gap, filled, zg)
+
+
+def _grown(zg: np.ndarray, rings: int) -> np.ndarray:
+    """``zg`` grown by ``rings`` grid points beyond its known ones, continued linearly from
+    the two before along the sections (s), then along the finger (t), and the mean of both
+    where both reach (the nodes on the mesh's outline sit on its edge, where the grid points
+    around them are half outside; steep there, so a flat continuation would shorten arcs)."""
+    for _ in range(rings):
+        total = np.zeros_like(zg)
+        count = np.zeros_like(zg)
+        for axis in (0, 1):
+            for step in (1, -1):
+                one = np.roll(zg, step, axis=axis)
+                two = np.roll(zg, 2 * step, axis=axis)
+                edge = [slice(None)] * 2
+                edge[axis] = slice(0, 2) if step == 1 else slice(-2, None)
+                one[tuple(edge)] = np.nan
+                line = 2.0 * one - two
+                ok = np.isfinite(line) & ~np.isfinite(zg)
+                total[ok] += line[ok]
+                count[ok] += 1.0
+        zg = np.where(count > 0, total / np.maximum(count, 1.0), zg)
+    return zg
+
+
+def _bridged(zg: np.ndarray) -> np.ndarray:
+    """``zg`` with each row's inner gaps (NaN between known values) filled linearly."""
+    known = np.isfinite(zg)
+    cols = np.arange(zg.shape[1])
+    before = np.maximum.accumulate(np.where(known, cols, -1), axis=1)
+    after = np.minimum.accumulate(np.where(known, cols, zg.shape[1])[:, ::-1], axis=1)[:, ::-1]
+    inner = ~known & (before >= 0) & (after < zg.shape[1])
+    rows = np.nonzero(inner)[0]
+    b, a = before[inner], after[inner]
+    weight = (cols[None, :].repeat(len(zg), 0)[inner] - b) / (a - b)
+    out = zg.copy()
+    out[inner] = (1 - weight) * zg[rows, b] + weight * zg[rows, a]
+    return out
+
+
+def _axis(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(across, along): unit image-plane directions, a proper rotation of (x, y), ``along``
+    the direction of least curvature (pointing down the image)."""
+    coef = _quadric(rel[:, 0], rel[:, 1], rel[:, 2])
+    hessian = np.array([[2 * coef[3], coef[4]], [coef[4], 2 * coef[5]]])
+    values, vectors = np.linalg.eigh(hessian)
+    order = np.argsort(np.abs(values))
+    if abs(values[order[0]]) > _ISOTROPIC * abs(values[order[1]]):
+        return np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    along = vectors[:, order[0]]
+    along = along if along[1] >= 0 else -along
+    return np.array([along[1], -along[0]]), along
+
+
+def _quadric(s: np.ndarray, t: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Least-squares (c0..c5) of z ~ c0 + c1 s + c2 t + c3 s^2 + c4 s t + c5 t^2."""
+    design = np.stack([np.ones_like(s), s, t, s * s, s * t, t * t], axis=1)
+    return np.linalg.lstsq(design, z, rcond=None)[0]
+
+
+def _filled(profile: np.ndarray) -> np.ndarray:
+    """A 1-D profile with its NaN ends and gaps filled linearly from the known values."""
+    known = np.isfinite(profile)
+    if not known.any():
+        raise UnrollingError("the crest of the finger is not on the surface seen")
+    index = np.arange(profile.size)
+    return np.interp(index, index[known], profile[known])
