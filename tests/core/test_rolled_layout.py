@@ -15,6 +15,9 @@ their arc length within 0.02 mm.
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -30,6 +33,9 @@ from fingerps_recon.surface.surface_unrolling import (
     unroll_surface,
 )
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+from bench_fingerprint import similarity  # the benchmark's fit (Umeyama 1991)
+
 #: (roll, yaw, pitch) deg and apex shift (x, y) mm of the rig finger's poses.
 POSES = (((0.0, 0.0, 0.0), (0.0, 0.0)), ((3.0, -8.0, 4.0), (0.6, -0.5)),
          ((-4.0, 9.0, -3.0), (-0.8, 0.7)))
@@ -39,18 +45,6 @@ MEDIAN_MM, P95_MM = 0.1, 0.25
 CYLINDER_MM = 0.05
 #: Largest |scale - 1| of the similarity fit.
 SCALE_TOLERANCE = 0.006
-
-
-def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray]:
-    """Scale and residuals (N,) of the least-squares similarity dst ~ s R src + t (Umeyama
-    1991, no reflection)."""
-    ms, md = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - ms, dst - md
-    u, sv, vt = np.linalg.svd(b.T @ a / len(a))
-    d = np.diag([1.0, np.sign(np.linalg.det(u @ vt))])
-    rot = u @ d @ vt
-    scale = float(np.trace(np.diag(sv) @ d) / (a * a).sum(axis=1).mean())
-    return scale, np.linalg.norm(a @ (scale * rot).T - b, axis=1)
 
 
 def _against_skin(unrolling: SurfaceUnrolling, rolled_mm: np.ndarray) -> tuple[float,
@@ -64,7 +58,8 @@ def _against_skin(unrolling: SurfaceUnrolling, rolled_mm: np.ndarray) -> tuple[f
                      for c in range(2)], axis=1).astype(np.float64)
     known = np.isfinite(skin).all(axis=1)
     layout = unrolling.node_xy_mm * np.array([-1.0, 1.0])
-    return _similarity(layout[known], skin[known])
+    scale, rot, shift = similarity(layout[known], skin[known])
+    return scale, np.linalg.norm(layout[known] @ (scale * rot).T + shift - skin[known], axis=1)
 
 
 @pytest.fixture(scope="module", params=range(len(POSES)), ids=["front", "pose1", "pose2"])
