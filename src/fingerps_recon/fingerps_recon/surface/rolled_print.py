@@ -24,10 +24,10 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    contact prints are in; the springs model (``Layout.SPRINGS``), which keeps every
    neighbour distance as well as it can, spreads the cap's strain differently, by up to
    ~6 % at the print's edge. On the fingerprint benchmark's HK captures the rolled plane put
-   every 4 mm region of the print within 1.45 % of the scale of the finger's true rolled
+   every 4 mm region of the print within 1.46 % of the scale of the finger's true rolled
    plane (springs: 6.7 %) and the median distance left after a similarity fit at 0.06 mm
-   (0.19 mm); recall / precision 0.985 / 0.972 (0.991 / 0.976), NFIQ 2 median 54 (55),
-   bozorth3 against contact impressions 0.77 of contact-vs-contact (0.79) (issue 23).
+   (0.19 mm); recall / precision 0.986 / 0.972 (0.991 / 0.976), NFIQ 2 median 55 (55),
+   bozorth3 against contact impressions 0.797 of contact-vs-contact (0.787) (issue 23).
 3. Band pass on the print plane, where the ridge period is the skin's: a difference of
    Gaussians (sigma 0.1 and 0.3 mm: half its peak gain at periods of 0.43 and 1.9 mm, 6 % at
    0.25 mm), as normalized convolutions within the print's mask, so the outside does not
