@@ -45,7 +45,7 @@ import numpy as np
 from scipy import ndimage
 
 from fingerps_recon.errors import UnrollingError
-from fingerps_recon.surface import print_kernel
+from fingerps_recon.surface.mesh_raster import rasterise_mesh
 
 #: Grid rings the resampled surface is grown by beyond the mesh (``_grown``).
 _GROWTH = 2
@@ -127,11 +127,9 @@ def _surface_grid(s: np.ndarray, t: np.ndarray, z: np.ndarray, triangles: np.nda
     """(rows t, cols s) depth of the surface on the grid: linear over the mesh's triangles,
     grown by ``_GROWTH`` grid points beyond them, NaN elsewhere."""
     h = s_grid[1] - s_grid[0]
-    out = np.full((len(t_grid), len(s_grid), 2), np.nan, dtype=np.float32)
-    print_kernel.rasterise(np.ascontiguousarray(np.c_[s - s_grid[0], t - t_grid[0]] / h),
-                           np.ascontiguousarray(np.c_[z, z]),
-                           np.ascontiguousarray(triangles, dtype=np.int64), out)
-    return _grown(out[..., 0].astype(np.float64), _GROWTH)
+    depth = rasterise_mesh(np.c_[s, t], z, triangles, origin=(s_grid[0], t_grid[0]),
+                           pitch=(h, h), shape=(len(t_grid), len(s_grid)))
+    return _grown(depth.astype(np.float64), _GROWTH)
 
 
 def _crest_line(zg: np.ndarray, s_grid: np.ndarray, t_grid: np.ndarray

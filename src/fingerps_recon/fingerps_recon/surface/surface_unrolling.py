@@ -58,6 +58,7 @@ import scipy.linalg
 from fingerps_recon.errors import UnrollingError
 from fingerps_recon.photometric.pixel_rays import checked_camera_matrix
 from fingerps_recon.surface import print_kernel
+from fingerps_recon.surface.mesh_raster import rasterise_mesh
 from fingerps_recon.surface.rolled_layout import rolled_layout
 
 # Neighbour offsets (rows, cols) of the springs: right, down, down-right, down-left.
@@ -203,8 +204,8 @@ class SurfaceUnrolling:
         dy = (y[-1] - y[0]) / (y.size - 1)
         cw = (x.size - 1) // step + 2  # one coarse point past the last grid point
         ch = (y.size - 1) // step + 2
-        coarse = _rasterise(*self._mesh, origin=(x[0], y[0]), pitch=(dx * step, dy * step),
-                            shape=(ch, cw))
+        coarse = rasterise_mesh(*self._mesh, origin=(x[0], y[0]),
+                                pitch=(dx * step, dy * step), shape=(ch, cw))
         fx = np.broadcast_to((np.arange(x.size, dtype=np.float32) / step)[None, :],
                              (y.size, x.size))
         fy = np.broadcast_to((np.arange(y.size, dtype=np.float32) / step)[:, None],
@@ -212,20 +213,6 @@ class SurfaceUnrolling:
         fine = cv2.remap(coarse, np.ascontiguousarray(fx), np.ascontiguousarray(fy),
                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return fine[..., 0], fine[..., 1]
-
-
-def _rasterise(xy: np.ndarray, values: np.ndarray, triangles: np.ndarray, *,
-               origin: tuple[float, float], pitch: tuple[float, float],
-               shape: tuple[int, int]) -> np.ndarray:
-    """(h, w, 2) float32 barycentric interpolation of ``values`` (N, 2) over ``triangles``
-    of the points ``xy`` (N, 2), sampled at origin + (col, row) * pitch; NaN off them
-    (:func:`fingerps_recon.surface.print_kernel.rasterise`)."""
-    out = np.full((*shape, 2), np.nan, dtype=np.float32)
-    grid_xy = (np.asarray(xy, dtype=np.float64) - np.asarray(origin)) / np.asarray(pitch)
-    print_kernel.rasterise(np.ascontiguousarray(grid_xy),
-                           np.ascontiguousarray(values, dtype=np.float64),
-                           np.ascontiguousarray(triangles, dtype=np.int64), out)
-    return out
 
 
 def unroll_surface(
