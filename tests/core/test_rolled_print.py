@@ -160,6 +160,21 @@ def test_print_format(ridged) -> None:
     assert result.strain_rms < 1e-3
 
 
+def test_the_border_is_white_margin_around_the_same_print(ridged) -> None:
+    depth, mask, _, result = ridged
+    narrow = _print(depth, mask, options=RolledPrintOptions(border_px=8))
+    extra = RolledPrintOptions().border_px - 8
+    assert extra > 0
+    inner = (slice(extra, -extra), slice(extra, -extra))
+    np.testing.assert_array_equal(result.image[inner], narrow.image)
+    np.testing.assert_array_equal(result.mask[inner], narrow.mask)
+    np.testing.assert_array_equal(result.source_x[inner], narrow.source_x)
+    assert np.all(result.image[:extra] == 255) and not result.mask[:, :extra].any()
+    assert np.isnan(result.source_y[-extra:]).all()
+    np.testing.assert_allclose(result.origin_mm, np.subtract(narrow.origin_mm,
+                                                             extra / result.px_per_mm))
+
+
 def test_print_is_the_mirror_of_the_camera_view(ridged) -> None:
     """Legacy orientation (a contact print is the skin's mirror image): along a print row
     the source column falls, down a print column the source row rises; ``origin_mm`` is in
