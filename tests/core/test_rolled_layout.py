@@ -7,10 +7,12 @@ arc length around the finger along its sections and along it from the apex), in 
 yaw, pitch and roll.
 
 Measured (this machine, rig finger, TRUE depth, nodes vs the generator's skin coordinates
-after a similarity fit): residual median 0.05-0.06 mm and 95th percentile 0.13-0.16 mm
-with the rolled layout against 0.13-0.14 / 0.42 mm with the springs (whose map spreads the
-cap's strain over every direction); scale within 0.3 %. Cylinder: the nodes' x equals
-their arc length within 0.02 mm.
+after a similarity fit, five poses, pitch -6 to +7 deg): residual median 0.004-0.04 mm and
+95th percentile 0.02-0.12 mm with the rolled layout (0.003-0.11 and 0.02-0.32 mm without
+the pitch's estimate) against 0.15-0.18 / 0.44-0.49 mm with the springs (whose map spreads
+the cap's strain over every direction); scale within 0.1 %. Cylinder: the nodes' x equals
+their arc length within 0.02 mm. The pitch from an analytic crest (the cap's and the pad's
+parabolas, pitched -8 to +8 deg): within 0.1 deg.
 """
 
 from __future__ import annotations

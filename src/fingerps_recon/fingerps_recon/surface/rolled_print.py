@@ -23,11 +23,11 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    sections and along it, as rolling it on a card lays the skin out), the plane rolled and
    contact prints are in; the springs model (``Layout.SPRINGS``), which keeps every
    neighbour distance as well as it can, spreads the cap's strain differently, by up to
-   ~6 % at the print's edge. On the fingerprint benchmark's HK captures the rolled plane put
-   every 4 mm region of the print within 1.46 % of the scale of the finger's true rolled
-   plane (springs: 6.7 %) and the median distance left after a similarity fit at 0.06 mm
-   (0.19 mm); recall / precision 0.986 / 0.972 (0.991 / 0.976), NFIQ 2 median 55 (55),
-   bozorth3 against contact impressions 0.797 of contact-vs-contact (0.787) (issue 23).
+   ~6 % at the print's edge. On the fingerprint benchmark's HK captures the rolled plane
+   (with the finger's pitch) put every 4 mm region of the print within 0.92 % of the scale
+   of the finger's true rolled plane (springs: 6.7 %) and the median distance left after a
+   similarity fit at 0.020 mm (0.19 mm); recall / precision 0.987 / 0.976, NFIQ 2 median
+   55, bozorth3 against contact impressions 0.88 of contact-vs-contact (issue 23).
 3. Band pass on the print plane, where the ridge period is the skin's: a difference of
    Gaussians (sigma 0.1 and 0.3 mm: half its peak gain at periods of 0.43 and 1.9 mm, 6 % at
    0.25 mm), as normalized convolutions within the print's mask, so the outside does not
@@ -40,8 +40,9 @@ resampled onto that plane. Steps of :func:`rolled_print`:
    with 0.06 mm (0.883 / 0.872 on 12 captures; 0.987 / 0.974 with 0.1 mm): the print's
    rendering, not the normals, had set the limit (issue 23).
 4. Local contrast normalisation: zero mean and unit standard deviation in ~1 mm windows
-   (Gaussian sigma 0.4 mm), then ridges dark on white: grey = 127.5 (1 - n / 2) clipped to
-   0..255 (a sinusoidal ridge spans ~37..218), 255 outside the finger. Optionally
+   (Gaussian sigma 0.4 mm), then ridges dark on white: grey = 127.5 (1 - g n) clipped to
+   0..255, g = ``RolledPrintOptions.grey_gain`` = 0.375 (a sinusoidal ridge spans
+   ~60..195), 255 outside the finger. Optionally
    contextual Gabor filtering before the grey levels (``RolledPrintOptions.gabor``).
 
 Orientation: the legacy one of rolled and contact prints, which matchers' galleries hold.
@@ -112,6 +113,12 @@ class RolledPrintOptions:
     """Difference of Gaussians on the print plane (fine, coarse), millimetres."""
     normalisation_sigma_mm: float = 0.4
     """Gaussian window of the local mean and standard deviation (~1 mm across)."""
+    grey_gain: float = 0.375
+    """Grey levels per unit of the normalised signal, over 127.5 (step 4). On the prints of
+    the fingerprint benchmark's 60 TRUE surfaces, bozorth3 against contact impressions went
+    from 0.85 of contact-vs-contact with 0.5 to 0.92 with 0.375 (0.91 with 0.25 and 0.33,
+    0.89 with 0.43; NFIQ 2 median 54-56 throughout): mindtct finds fewer minutiae along the
+    print's outline in the softer print (issue 23)."""
     mesh_spacing_mm: float = 0.5
     layout: Layout = Layout.ROLLED
     """The unrolled plane: the rolled finger's (arc lengths around and along it, as rolling
@@ -401,7 +408,7 @@ def _enhance(signal: np.ndarray, inside: np.ndarray, ppmm: float,
         across = 0.5 * np.arctan2(2 * gxy, gxx - gyy)
         norm = _gabor(np.where(inside, norm, 0.0).astype(np.float32), inside, across,
                       options.gabor_period_mm * ppmm)
-    grey = np.clip(127.5 * (1.0 - 0.5 * norm), 0.0, 255.0)
+    grey = np.clip(127.5 * (1.0 - options.grey_gain * norm), 0.0, 255.0)
     image = np.where(inside, np.rint(grey), 255.0).astype(np.uint8)
     return image, float(coherence[core_half].mean()) if core_half.any() else 0.0
 
