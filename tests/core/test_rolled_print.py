@@ -175,6 +175,19 @@ def test_the_border_is_white_margin_around_the_same_print(ridged) -> None:
                                                              extra / result.px_per_mm))
 
 
+def test_the_grey_gain_scales_the_ridges_contrast(ridged) -> None:
+    depth, mask, _, result = ridged
+    soft = _print(depth, mask, options=RolledPrintOptions(grey_gain=0.5 * RolledPrintOptions()
+                                                          .grey_gain))
+    assert np.array_equal(soft.mask, result.mask)
+    spread = [np.subtract(*np.percentile(p.image[p.mask].astype(float), [95, 5]))
+              for p in (result, soft)]
+    print(f"\ngrey p5-p95 spread {spread[0]:.0f} (gain {RolledPrintOptions().grey_gain}), "
+          f"{spread[1]:.0f} (half)")
+    assert spread[1] == pytest.approx(0.5 * spread[0], rel=0.05)
+    assert abs(np.mean(soft.image[soft.mask]) - 127.5) < 10
+
+
 def test_print_is_the_mirror_of_the_camera_view(ridged) -> None:
     """Legacy orientation (a contact print is the skin's mirror image): along a print row
     the source column falls, down a print column the source row rises; ``origin_mm`` is in

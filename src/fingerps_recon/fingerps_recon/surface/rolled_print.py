@@ -116,8 +116,8 @@ class RolledPrintOptions:
     grey_gain: float = 0.375
     """Grey levels per unit of the normalised signal, over 127.5 (step 4). On the prints of
     the fingerprint benchmark's 60 TRUE surfaces, bozorth3 against contact impressions went
-    from 0.85 of contact-vs-contact with 0.5 to 0.92 with 0.375 (0.91 with 0.25 and 0.33,
-    0.89 with 0.43; NFIQ 2 median 54-56 throughout): mindtct finds fewer minutiae along the
+    from 0.85 of contact-vs-contact with 0.5 to 0.92 with 0.375 (0.91 with 0.25 and 0.325,
+    0.89 with 0.425; NFIQ 2 median 54-56 throughout): mindtct finds fewer minutiae along the
     print's outline in the softer print (issue 23)."""
     mesh_spacing_mm: float = 0.5
     layout: Layout = Layout.ROLLED
