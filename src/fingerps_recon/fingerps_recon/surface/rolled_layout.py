@@ -104,8 +104,9 @@ def rolled_layout(points: np.ndarray, triangles: np.ndarray, apex: int, spacing_
     if line is not None:
         rows = np.arange(len(t_grid), dtype=np.float64)
         crest_col = (line[0] + line[1] * t_grid - s_grid[0]) / h
-        pitch = crest_pitch(t_grid, ndimage.map_coordinates(surface, [rows, crest_col], order=1,
-                                                       cval=np.nan, prefilter=False))
+        crest_depth = ndimage.map_coordinates(surface, [rows, crest_col], order=1,
+                                              cval=np.nan, prefilter=False)
+        pitch = crest_pitch(t_grid, crest_depth)
         if pitch != 0.0:  # the sections again, across the finger's own axis
             rel = _pitched(rel, along, pitch)
             s, t, s_grid, t_grid, surface, line, across, along = _sections(
@@ -141,7 +142,8 @@ def rolled_layout(points: np.ndarray, triangles: np.ndarray, apex: int, spacing_
 
 
 def _sections(rel: np.ndarray, triangles: np.ndarray, across: np.ndarray, along: np.ndarray,
-              h: float) -> tuple:
+              h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                 tuple[float, float] | None, np.ndarray, np.ndarray]:
     """The nodes' (s, t), the grid's (s_grid, t_grid), the surface on it, the crest line
     (None: too few crests) and the axis (across, along), turned onto the crest (step 1)."""
     line = None
